@@ -1,0 +1,1 @@
+"""Core of fleetcal: frame and transform types, camera models, config, errors, the dask engine."""

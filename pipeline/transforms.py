@@ -1,0 +1,225 @@
+"""Rigid transforms (4x4 float64, ``p_a = T_a_b @ p_b``) and the tf tree.
+
+Quaternions are scalar-last ``(qx, qy, qz, qw)`` as in ROS. Euler angles are xyz-extrinsic
+(roll about x, then pitch about y, then yaw about z, all about fixed axes), in degrees.
+"""
+
+from __future__ import annotations
+
+import bisect
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation, Slerp
+
+from pipeline.errors import TransformError
+
+Mat4 = NDArray[np.float64]
+
+
+def make_T(rotation: NDArray[np.float64], translation: NDArray[np.float64] | list[float]) -> Mat4:
+    """4x4 transform from a 3x3 rotation matrix and a translation (metres)."""
+    T = np.eye(4)
+    T[:3, :3] = rotation
+    T[:3, 3] = np.asarray(translation, dtype=np.float64)
+    return T
+
+
+def invert(T: Mat4) -> Mat4:
+    """Inverse of a rigid transform (``T_b_a`` from ``T_a_b``)."""
+    R = T[:3, :3]
+    out = np.eye(4)
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ T[:3, 3]
+    return out
+
+
+def apply(T: Mat4, points_xyz: NDArray[np.floating]) -> NDArray[np.float64]:
+    """Apply ``T_a_b`` to (N, 3) points in frame b; returns (N, 3) points in frame a."""
+    pts = np.asarray(points_xyz, dtype=np.float64)
+    return pts @ T[:3, :3].T + T[:3, 3]
+
+
+def from_quat(translation: NDArray[np.float64] | list[float], quat_xyzw: NDArray[np.float64] | list[float]) -> Mat4:
+    """Transform from translation (m) and quaternion (qx, qy, qz, qw); rejects non-finite or zero norm."""
+    q = np.asarray(quat_xyzw, dtype=np.float64)
+    t = np.asarray(translation, dtype=np.float64)
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(t))):
+        raise TransformError("transform has NaN or infinite values")
+    norm = float(np.linalg.norm(q))
+    if norm < 1e-6:
+        raise TransformError("transform has a zero-length quaternion")
+    return make_T(Rotation.from_quat(q / norm).as_matrix(), t)
+
+
+def to_quat(T: Mat4) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(translation (3,), quaternion (4,) scalar-last with qw >= 0) of a transform."""
+    q = Rotation.from_matrix(T[:3, :3]).as_quat()
+    if q[3] < 0:
+        q = -q
+    return T[:3, 3].copy(), q
+
+
+def from_xyz_rpy(x: float, y: float, z: float, roll_deg: float, pitch_deg: float, yaw_deg: float) -> Mat4:
+    """Transform from metres and xyz-extrinsic Euler angles in degrees."""
+    R = Rotation.from_euler("xyz", [roll_deg, pitch_deg, yaw_deg], degrees=True).as_matrix()
+    return make_T(R, [x, y, z])
+
+
+def to_rpy_deg(T: Mat4) -> NDArray[np.float64]:
+    """xyz-extrinsic Euler angles (roll, pitch, yaw) in degrees."""
+    return np.asarray(Rotation.from_matrix(T[:3, :3]).as_euler("xyz", degrees=True))
+
+
+def exp_se3(xi: NDArray[np.float64]) -> Mat4:
+    """Transform from a 6-vector (rotation vector rad (3), translation m (3)), rotation and translation decoupled."""
+    return make_T(Rotation.from_rotvec(xi[:3]).as_matrix(), xi[3:6])
+
+
+def rotation_error_deg(T_a: Mat4, T_b: Mat4) -> float:
+    """Angle (degrees) of the relative rotation between two transforms."""
+    R = T_a[:3, :3].T @ T_b[:3, :3]
+    cos = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    return float(np.degrees(np.arccos(cos)))
+
+
+def translation_error_m(T_a: Mat4, T_b: Mat4) -> float:
+    """Distance (m) between the translations of two transforms."""
+    return float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]))
+
+
+def is_rigid(T: NDArray[np.float64], tol: float = 1e-6) -> bool:
+    """True when T is a finite 4x4 rigid transform (orthonormal rotation, det +1, last row 0 0 0 1)."""
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        return False
+    R = T[:3, :3]
+    return bool(
+        np.allclose(R.T @ R, np.eye(3), atol=tol)
+        and abs(np.linalg.det(R) - 1.0) < tol
+        and np.allclose(T[3], [0, 0, 0, 1], atol=tol)
+    )
+
+
+@dataclass
+class _Edge:
+    """Transforms of one parent->child edge: static, or a time series of ``T_parent_child``."""
+
+    static: Mat4 | None = None
+    stamps_ns: list[int] = field(default_factory=list)
+    transforms: list[Mat4] = field(default_factory=list)
+
+    def at(self, stamp_ns: int | None, tolerance_ns: int) -> Mat4:
+        if self.static is not None:
+            return self.static
+        if not self.stamps_ns:
+            raise TransformError("edge has no transforms")
+        if stamp_ns is None or len(self.stamps_ns) == 1:
+            if stamp_ns is not None and abs(stamp_ns - self.stamps_ns[0]) > tolerance_ns:
+                raise TransformError(f"no transform within {tolerance_ns / 1e6:.0f} ms of {stamp_ns}")
+            return self.transforms[-1 if stamp_ns is None else 0]
+        i = bisect.bisect_left(self.stamps_ns, stamp_ns)
+        if i == 0 or i == len(self.stamps_ns):
+            j = 0 if i == 0 else len(self.stamps_ns) - 1
+            if abs(stamp_ns - self.stamps_ns[j]) > tolerance_ns:
+                raise TransformError(f"no transform within {tolerance_ns / 1e6:.0f} ms of {stamp_ns}")
+            return self.transforms[j]
+        t0, t1 = self.stamps_ns[i - 1], self.stamps_ns[i]
+        T0, T1 = self.transforms[i - 1], self.transforms[i]
+        s = (stamp_ns - t0) / (t1 - t0) if t1 != t0 else 0.0
+        rots = Rotation.from_matrix(np.stack([T0[:3, :3], T1[:3, :3]]))
+        R = Slerp([0.0, 1.0], rots)([s]).as_matrix()[0]
+        return make_T(R, (1 - s) * T0[:3, 3] + s * T1[:3, 3])
+
+
+class TransformTree:
+    """A tf tree from ``/tf`` and ``/tf_static``: ``lookup(target, source, stamp_ns)`` gives ``T_target_source``.
+
+    Dynamic edges are interpolated (slerp + linear) between their stamps; outside the recorded span a
+    lookup succeeds only within ``tolerance_ns`` of the nearest stamp.
+    """
+
+    def __init__(self, tolerance_ns: int = 100_000_000) -> None:
+        self._edges: dict[tuple[str, str], _Edge] = {}
+        self._children: dict[str, set[str]] = {}
+        self._parents: dict[str, set[str]] = {}
+        self.tolerance_ns = tolerance_ns
+
+    def add(self, parent: str, child: str, T_parent_child: Mat4, stamp_ns: int, static: bool) -> None:
+        """Add one edge sample. Raises TransformError for a non-rigid transform or a self-loop."""
+        parent, child = parent.lstrip("/"), child.lstrip("/")
+        if parent == child:
+            raise TransformError(f"transform from frame {parent!r} to itself")
+        if not is_rigid(T_parent_child, tol=1e-4):
+            raise TransformError(f"transform {parent} -> {child} is not a rigid transform")
+        edge = self._edges.setdefault((parent, child), _Edge())
+        self._children.setdefault(parent, set()).add(child)
+        self._parents.setdefault(child, set()).add(parent)
+        if static:
+            edge.static = T_parent_child
+            return
+        i = bisect.bisect_left(edge.stamps_ns, stamp_ns)
+        if i < len(edge.stamps_ns) and edge.stamps_ns[i] == stamp_ns:
+            edge.transforms[i] = T_parent_child
+            return
+        edge.stamps_ns.insert(i, stamp_ns)
+        edge.transforms.insert(i, T_parent_child)
+
+    @property
+    def frames(self) -> set[str]:
+        return set(self._children) | set(self._parents)
+
+    def edges(self) -> list[tuple[str, str, bool]]:
+        """(parent, child, static) for every edge."""
+        return [(p, c, e.static is not None) for (p, c), e in sorted(self._edges.items())]
+
+    def is_static_path(self, target: str, source: str) -> bool:
+        path = self._path(target.lstrip("/"), source.lstrip("/"))
+        return all(self._edges[key].static is not None for key, _ in path)
+
+    def _path(self, target: str, source: str) -> list[tuple[tuple[str, str], bool]]:
+        """Edges from source to target as (edge key, forward) where forward means child->parent."""
+        if target == source:
+            return []
+        prev: dict[str, tuple[str, tuple[tuple[str, str], bool]] | None] = {source: None}
+        queue = deque([source])
+        while queue:
+            node = queue.popleft()
+            if node == target:
+                break
+            for parent in self._parents.get(node, ()):
+                if parent not in prev:
+                    prev[parent] = (node, ((parent, node), True))
+                    queue.append(parent)
+            for child in self._children.get(node, ()):
+                if child not in prev:
+                    prev[child] = (node, ((node, child), False))
+                    queue.append(child)
+        if target not in prev:
+            raise TransformError(f"no tf path from {source!r} to {target!r}")
+        steps: list[tuple[tuple[str, str], bool]] = []
+        node = target
+        while prev[node] is not None:
+            back = prev[node]
+            assert back is not None
+            steps.append(back[1])
+            node = back[0]
+        return steps[::-1]
+
+    def lookup(self, target: str, source: str, stamp_ns: int | None = None) -> Mat4:
+        """``T_target_source`` at ``stamp_ns`` (None: latest / static)."""
+        target, source = target.lstrip("/"), source.lstrip("/")
+        T = np.eye(4)
+        for key, forward in self._path(target, source):
+            T_parent_child = self._edges[key].at(stamp_ns, self.tolerance_ns)
+            step = T_parent_child if forward else invert(T_parent_child)
+            T = step @ T
+        return T
+
+    def can_lookup(self, target: str, source: str) -> bool:
+        try:
+            self._path(target.lstrip("/"), source.lstrip("/"))
+        except TransformError:
+            return False
+        return True

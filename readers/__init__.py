@@ -1,0 +1,1 @@
+"""Log readers: one module per container format, one contract (``readers.base.LogReader``)."""

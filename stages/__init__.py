@@ -1,0 +1,1 @@
+"""Per-frame stages (features, gradients, covariances) and aggregation (GOM + PSO, MC-GICP, sinks)."""
