@@ -1,0 +1,69 @@
+"""``fleetcal inspect LOG [LOG ...]``: topics, types, counts, rates, time span, frame ids, lidar and
+camera topics, tf edges and undecodable topics of a log.
+
+A damaged MCAP is read as far as it is intact; the report is printed, then a line says how many
+messages were recovered and how many bytes were lost. Without ``--allow-truncated`` that line is an
+error (exit 1); with it, a warning (exit 0).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+from pipeline.errors import TruncatedLogError
+from readers.open import open_log
+from workflows.cli import emit_json
+from workflows.inspect_log import format_report, inspect_log
+
+EXAMPLES = """examples:
+  fleetcal inspect drive.mcap
+  fleetcal inspect run_0.bag run_1.bag            several files of one recording
+  fleetcal inspect rosbag2_folder/ --json
+  fleetcal inspect cut.mcap --allow-truncated     read what is intact of a damaged file
+"""
+
+
+def register(subparsers: Any, common: argparse.ArgumentParser) -> None:
+    """Add the ``inspect`` command."""
+    parser = subparsers.add_parser(
+        "inspect",
+        parents=[common],
+        help="topics, types, counts, rates, time span, frame ids, lidar/camera topics and tf tree",
+        description=__doc__,
+        epilog=EXAMPLES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument(
+        "logs", nargs="+", metavar="LOG",
+        help="MCAP file, ROS 1 .bag, or ROS 2 bag folder; several files of one recording are merged",
+    )
+    parser.add_argument(
+        "--allow-truncated", action="store_true",
+        help="accept a damaged MCAP: report what is intact and exit 0 with a warning",
+    )
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Inspect the logs and print the report; 0 on success."""
+    with open_log(args.logs, allow_truncated=True) as reader:
+        report = inspect_log(reader)
+    if args.json:
+        emit_json(report.to_json())
+    else:
+        sys.stdout.write(format_report(report))
+        sys.stdout.flush()
+    truncation = report.truncation
+    if truncation is None:
+        return 0
+    message = truncation.message(", ".join(report.paths))
+    if args.allow_truncated:
+        sys.stderr.write(f"warning: {message}\n")
+        return 0
+    raise TruncatedLogError(
+        f"{message} (pass --allow-truncated to accept)",
+        recovered_messages=truncation.recovered_messages,
+        lost_bytes=truncation.lost_bytes,
+    )
