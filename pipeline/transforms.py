@@ -223,3 +223,15 @@ class TransformTree:
         except TransformError:
             return False
         return True
+
+
+def root_of(tree: TransformTree, frame: str) -> str:
+    """The top-most ancestor of ``frame`` (following the first parent at each step)."""
+    node = frame.lstrip("/")
+    seen = {node}
+    while True:
+        parents = sorted(tree._parents.get(node, ()))
+        if not parents or parents[0] in seen:
+            return node
+        node = parents[0]
+        seen.add(node)

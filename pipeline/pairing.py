@@ -1,0 +1,206 @@
+"""Pair lidar scans with camera images by sensor time (header stamps).
+
+Each lidar frame is paired with the camera frame whose header stamp is nearest, if within a
+tolerance (default 50 ms); lidar frames without one are skipped and counted. Stamps are read from
+the first bytes of each raw message (every sensor message starts with a Header), so finding the
+pairs decodes nothing; only the paired frames are decoded afterwards.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.errors import ConfigError
+from pipeline.frames import CameraFrame, LidarFrame
+from readers.base import LogReader, RawMessage
+from readers.decode import decode_pointcloud2, stamp_to_ns
+from readers.frames import (
+    IMAGE_TYPES,
+    POINTCLOUD2,
+    CameraInfoTracker,
+    camera_info_topic_for,
+    decode_camera_image,
+    require_topic,
+)
+
+log = logging.getLogger(__name__)
+
+DEFAULT_TOLERANCE_NS = 50_000_000
+
+
+@dataclass
+class PairingStats:
+    """Counts from one ``iter_pairs`` run.
+
+    Attributes:
+        lidar_frames, camera_frames: messages on each topic in the time range.
+        matched: lidar frames with a camera frame within the tolerance.
+        unmatched_lidar: lidar frames skipped for want of one.
+        yielded: pairs actually produced (``max_pairs`` may select fewer than ``matched``).
+    """
+
+    lidar_frames: int = 0
+    camera_frames: int = 0
+    matched: int = 0
+    unmatched_lidar: int = 0
+    yielded: int = 0
+
+
+def pair_stamps(
+    lidar_stamps_ns: Sequence[int] | NDArray[np.int64],
+    camera_stamps_ns: Sequence[int] | NDArray[np.int64],
+    tolerance_ns: int = DEFAULT_TOLERANCE_NS,
+) -> list[tuple[int, int]]:
+    """(lidar index, camera index) for each lidar stamp with a camera stamp within ``tolerance_ns``.
+
+    The nearest camera stamp wins (the earlier one on a tie); a camera frame may serve several
+    lidar frames. Inputs need not be sorted; the result is in lidar index order.
+    """
+    if tolerance_ns < 0:
+        raise ConfigError(f"pairing tolerance must be >= 0 ns, got {tolerance_ns}")
+    lidar = np.asarray(lidar_stamps_ns, dtype=np.int64).reshape(-1)
+    camera = np.asarray(camera_stamps_ns, dtype=np.int64).reshape(-1)
+    if lidar.size == 0 or camera.size == 0:
+        return []
+    order = np.argsort(camera, kind="stable")
+    sorted_camera = camera[order]
+    pos = np.searchsorted(sorted_camera, lidar, side="left")
+    before = np.clip(pos - 1, 0, camera.size - 1)
+    after = np.clip(pos, 0, camera.size - 1)
+    gap_before = np.abs(lidar - sorted_camera[before])
+    gap_after = np.abs(sorted_camera[after] - lidar)
+    nearest = np.where(gap_after < gap_before, after, before)
+    gap = np.minimum(gap_before, gap_after)
+    return [(int(i), int(order[nearest[i]])) for i in np.flatnonzero(gap <= tolerance_ns)]
+
+
+def raw_header_stamp_ns(raw: RawMessage, reader: LogReader | None = None) -> int:
+    """Header stamp (ns) of a raw message whose type starts with ``std_msgs/Header``, without decoding it.
+
+    CDR: 4-byte encapsulation header (byte 1 odd = little-endian), then int32 sec, uint32 nanosec.
+    ROS 1: uint32 seq, uint32 sec, uint32 nsec. Falls back to ``reader.deserialize`` when the
+    payload is too short to hold a header.
+    """
+    data = raw.data
+    if len(data) >= 12:
+        if raw.serialization == "cdr":
+            endian = "<" if data[1] & 1 else ">"
+            sec, nanosec = struct.unpack_from(endian + "iI", data, 4)
+        else:
+            sec, nanosec = struct.unpack_from("<II", data, 4)
+        return int(sec) * 1_000_000_000 + int(nanosec)
+    if reader is None:
+        raise ValueError("message too short for a header and no reader to decode it")
+    return stamp_to_ns(reader.deserialize(raw).header.stamp)
+
+
+def _select(pairs: list[tuple[int, int]], max_pairs: int | None) -> list[tuple[int, int]]:
+    """``max_pairs`` pairs spread evenly over the log (all when None or enough)."""
+    if max_pairs is None or len(pairs) <= max_pairs:
+        return pairs
+    if max_pairs <= 0:
+        return []
+    picks = np.unique(np.linspace(0, len(pairs) - 1, max_pairs).round().astype(np.int64))
+    return [pairs[int(i)] for i in picks]
+
+
+def iter_pairs(
+    reader: LogReader,
+    lidar_topic: str,
+    camera_topic: str,
+    tolerance_ns: int = DEFAULT_TOLERANCE_NS,
+    max_pairs: int | None = None,
+    *,
+    start_ns: int | None = None,
+    end_ns: int | None = None,
+    stats: PairingStats | None = None,
+) -> Iterator[tuple[LidarFrame, CameraFrame]]:
+    """(LidarFrame, CameraFrame with its CameraModel) pairs, nearest header stamps within ``tolerance_ns``.
+
+    Two passes over the raw messages: stamps first (no decoding), then only the paired frames are
+    decoded, and each is dropped once its pairs are out, so memory holds a few frames. Pairs come
+    in log order. ``max_pairs`` keeps that many pairs spread evenly over the log. Unmatched lidar
+    frames are skipped, counted in ``stats`` and logged.
+
+    Raises:
+        InputError: a topic is missing or of the wrong type.
+    """
+    require_topic(reader, lidar_topic, (POINTCLOUD2,))
+    camera_type = require_topic(reader, camera_topic, IMAGE_TYPES)
+    stats = stats if stats is not None else PairingStats()
+    stamps: dict[str, list[int]] = {lidar_topic: [], camera_topic: []}
+    for raw in reader.messages(topics=[lidar_topic, camera_topic], start_ns=start_ns, end_ns=end_ns):
+        stamps[raw.topic].append(raw_header_stamp_ns(raw, reader))
+    matched = pair_stamps(stamps[lidar_topic], stamps[camera_topic], tolerance_ns)
+    stats.lidar_frames, stats.camera_frames = len(stamps[lidar_topic]), len(stamps[camera_topic])
+    stats.matched = len(matched)
+    stats.unmatched_lidar = stats.lidar_frames - stats.matched
+    if stats.unmatched_lidar:
+        log.info(
+            "%d of %d lidar frames on %s have no %s frame within %.0f ms",
+            stats.unmatched_lidar, stats.lidar_frames, lidar_topic, camera_topic, tolerance_ns / 1e6,
+        )  # fmt: skip
+    pairs = _select(matched, max_pairs)
+    if not pairs:
+        return
+    yield from _decode_pairs(reader, lidar_topic, camera_topic, camera_type, pairs, stats, start_ns, end_ns)
+
+
+def _decode_pairs(
+    reader: LogReader,
+    lidar_topic: str,
+    camera_topic: str,
+    camera_type: str,
+    pairs: list[tuple[int, int]],
+    stats: PairingStats,
+    start_ns: int | None,
+    end_ns: int | None,
+) -> Iterator[tuple[LidarFrame, CameraFrame]]:
+    lidar_uses: dict[int, int] = {}
+    camera_uses: dict[int, int] = {}
+    for li, ci in pairs:
+        lidar_uses[li] = lidar_uses.get(li, 0) + 1
+        camera_uses[ci] = camera_uses.get(ci, 0) + 1
+    pending = sorted(pairs)
+    lidar_frames: dict[int, LidarFrame] = {}
+    camera_frames: dict[int, CameraFrame] = {}
+    info = CameraInfoTracker(reader, camera_info_topic_for(camera_topic, reader.topics))
+    topics = [lidar_topic, camera_topic] + ([info.topic] if info.topic else [])
+    seen = {lidar_topic: -1, camera_topic: -1}
+    for raw in reader.messages(topics=topics, start_ns=start_ns, end_ns=end_ns):
+        if raw.topic == info.topic:
+            info.update(reader, raw)
+            continue
+        seen[raw.topic] += 1
+        index = seen[raw.topic]
+        msg: Any
+        if raw.topic == lidar_topic and index in lidar_uses:
+            msg = reader.deserialize(raw)
+            lidar_frames[index] = decode_pointcloud2(msg, lidar_topic, raw.log_time_ns)
+        elif raw.topic == camera_topic and index in camera_uses:
+            msg = reader.deserialize(raw)
+            frame = decode_camera_image(camera_type, msg, camera_topic, raw.log_time_ns)
+            frame.camera = info.model
+            camera_frames[index] = frame
+        else:
+            continue
+        ready = [(li, ci) for li, ci in pending if li in lidar_frames and ci in camera_frames]
+        for li, ci in ready:
+            pending.remove((li, ci))
+            stats.yielded += 1
+            yield lidar_frames[li], camera_frames[ci]
+            lidar_uses[li] -= 1
+            camera_uses[ci] -= 1
+            if not lidar_uses[li]:
+                del lidar_frames[li]
+            if not camera_uses[ci]:
+                del camera_frames[ci]
+        if not pending:
+            return

@@ -1,0 +1,20 @@
+"""Decoders: deserialised ROS message objects (rosbags, ROS 1 or ROS 2) -> fleetcal frames and models."""
+
+from __future__ import annotations
+
+from readers.decode.camera_info import decode_camera_info
+from readers.decode.common import stamp_to_ns
+from readers.decode.image import SUPPORTED_ENCODINGS, decode_compressed_image, decode_image
+from readers.decode.pointcloud2 import decode_pointcloud2
+from readers.decode.tf import decode_tf, decode_transform
+
+__all__ = [
+    "SUPPORTED_ENCODINGS",
+    "decode_camera_info",
+    "decode_compressed_image",
+    "decode_image",
+    "decode_pointcloud2",
+    "decode_tf",
+    "decode_transform",
+    "stamp_to_ns",
+]

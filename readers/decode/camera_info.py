@@ -1,0 +1,43 @@
+"""``sensor_msgs/CameraInfo`` (ROS 1 ``D, K, R, P`` or ROS 2 ``d, k, r, p`` spelling) -> ``CameraModel``."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.camera_model import CameraModel
+from pipeline.errors import DecodeError
+
+
+def _array(msg: Any, name: str) -> NDArray[np.float64]:
+    value = getattr(msg, name, None)
+    if value is None:
+        value = getattr(msg, name.upper(), None)
+    if value is None:
+        raise DecodeError(f"CameraInfo has no {name}/{name.upper()} field")
+    return np.asarray(value, dtype=np.float64).reshape(-1)
+
+
+def decode_camera_info(msg: Any) -> CameraModel:
+    """Camera model of a CameraInfo message object: size, K (3x3), D and the distortion model.
+
+    ``plumb_bob``, ``rational_polynomial`` and ``equidistant`` (also ``fisheye``, ``radtan``,
+    ``cylindrical``, and an empty string for no distortion) are understood. Binning and ROI are
+    not applied: the model describes the full-resolution image of ``width`` x ``height``.
+
+    Raises:
+        DecodeError: K all zero (uncalibrated camera), not finite, or not 9 values; an unknown
+            distortion model; a non-positive image size.
+    """
+    K = _array(msg, "k")
+    if K.size != 9:
+        raise DecodeError(f"CameraInfo K has {K.size} values, expected 9")
+    if not np.all(np.isfinite(K)):
+        raise DecodeError("CameraInfo K is not finite")
+    if not np.any(K):
+        raise DecodeError("CameraInfo K is all zero (camera not calibrated)")
+    D = _array(msg, "d")
+    model = str(msg.distortion_model).strip().lower()
+    return CameraModel(int(msg.width), int(msg.height), K.reshape(3, 3), D, model)

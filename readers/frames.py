@@ -1,0 +1,154 @@
+"""Decoded frames from a ``LogReader``: lidar scans, camera images with their CameraInfo, the tf tree."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable, Iterator, Mapping
+from typing import Any
+
+from pipeline.camera_model import CameraModel
+from pipeline.errors import DecodeError, InputError, TransformError
+from pipeline.frames import CameraFrame, LidarFrame
+from pipeline.transforms import TransformTree
+from readers.base import LogReader, RawMessage, TopicInfo
+from readers.decode import decode_camera_info, decode_compressed_image, decode_image, decode_pointcloud2
+from readers.decode.tf import decode_transform
+
+log = logging.getLogger(__name__)
+
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+IMAGE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+IMAGE_TYPES = (IMAGE, COMPRESSED_IMAGE)
+
+
+def require_topic(reader: LogReader, topic: str, expected: tuple[str, ...]) -> str:
+    """The message type of ``topic``; InputError when it is missing or not one of ``expected``."""
+    info = reader.topics.get(topic)
+    if info is None:
+        raise InputError(f"topic {topic} is not in the log (topics: {', '.join(sorted(reader.topics))})")
+    if info.msgtype not in expected:
+        raise InputError(f"topic {topic} has type {info.msgtype}, expected {' or '.join(expected)}")
+    return info.msgtype
+
+
+def iter_lidar_frames(
+    reader: LogReader, topic: str, start_ns: int | None = None, end_ns: int | None = None
+) -> Iterator[LidarFrame]:
+    """Decoded PointCloud2 frames of ``topic`` with ``start_ns <= log time < end_ns``, in log order.
+
+    Raises:
+        InputError: the topic is missing or not a PointCloud2 topic.
+        DecodeError: a message cannot be decoded.
+    """
+    require_topic(reader, topic, (POINTCLOUD2,))
+    for raw in reader.messages(topics=[topic], start_ns=start_ns, end_ns=end_ns):
+        yield decode_pointcloud2(reader.deserialize(raw), topic, raw.log_time_ns)
+
+
+def camera_info_topic_for(image_topic: str, topics: Mapping[str, TopicInfo] | Iterable[str]) -> str | None:
+    """The CameraInfo topic of an image topic: ``camera_info`` in the image's namespace or a parent one.
+
+    ``/cam/image_raw`` and ``/cam/image/compressed`` both give ``/cam/camera_info``. With a mapping
+    of TopicInfo only CameraInfo topics count. None when there is none.
+    """
+    if isinstance(topics, Mapping):
+        candidates = {name for name, info in topics.items() if info.msgtype == CAMERA_INFO}
+    else:
+        candidates = set(topics)
+    parts = image_topic.rstrip("/").split("/")
+    for depth in range(len(parts) - 1, 0, -1):
+        name = "/".join(parts[:depth]) + "/camera_info"
+        if name in candidates:
+            return name
+    return None
+
+
+def decode_camera_image(msgtype: str, msg: Any, topic: str, log_time_ns: int = 0) -> CameraFrame:
+    """Decode an Image or CompressedImage message object by its type name."""
+    if msgtype == COMPRESSED_IMAGE:
+        return decode_compressed_image(msg, topic, log_time_ns)
+    return decode_image(msg, topic, log_time_ns)
+
+
+class CameraInfoTracker:
+    """The latest CameraModel of a CameraInfo topic, seeded with the topic's first message.
+
+    Images that arrive before their first CameraInfo (in log order) still get a model.
+    """
+
+    def __init__(self, reader: LogReader, info_topic: str | None) -> None:
+        self.topic = info_topic
+        self.model: CameraModel | None = None
+        self._failed = False
+        if info_topic is not None:
+            first = next(iter(reader.messages(topics=[info_topic])), None)
+            if first is not None:
+                self.update(reader, first)
+
+    def update(self, reader: LogReader, raw: RawMessage) -> None:
+        """Take a new CameraInfo; an undecodable one keeps the previous model (warned once)."""
+        try:
+            self.model = decode_camera_info(reader.deserialize(raw))
+        except DecodeError as err:
+            if not self._failed:
+                log.warning("ignoring CameraInfo on %s: %s", raw.topic, err)
+            self._failed = True
+
+
+def iter_camera_frames(
+    reader: LogReader, topic: str, start_ns: int | None = None, end_ns: int | None = None
+) -> Iterator[CameraFrame]:
+    """Decoded Image / CompressedImage frames of ``topic`` with the latest CameraInfo attached.
+
+    ``camera`` is None when the log has no CameraInfo for the topic (see ``camera_info_topic_for``).
+
+    Raises:
+        InputError: the topic is missing or not an image topic.
+        DecodeError, UnsupportedEncodingError: an image cannot be decoded.
+    """
+    msgtype = require_topic(reader, topic, IMAGE_TYPES)
+    info = CameraInfoTracker(reader, camera_info_topic_for(topic, reader.topics))
+    wanted = [topic] if info.topic is None else [topic, info.topic]
+    for raw in reader.messages(topics=wanted, start_ns=start_ns, end_ns=end_ns):
+        if raw.topic == info.topic:
+            info.update(reader, raw)
+            continue
+        frame = decode_camera_image(msgtype, reader.deserialize(raw), topic, raw.log_time_ns)
+        frame.camera = info.model
+        yield frame
+
+
+def load_tf_tree(reader: LogReader, tolerance_ns: int = 100_000_000) -> TransformTree:
+    """TransformTree of the log's ``/tf`` (dynamic) and ``/tf_static`` (static) topics.
+
+    Bad entries (NaN, not a rotation, self-loops, undecodable messages) are skipped, counted and
+    reported in one logged warning.
+    """
+    tree = TransformTree(tolerance_ns=tolerance_ns)
+    topics = [name for name, info in reader.topics.items() if info.msgtype == TF_MESSAGE]
+    static_topics = {name for name in topics if name.rstrip("/").endswith("tf_static")}
+    if not topics:
+        return tree
+    skipped: dict[str, int] = {}
+    first_error: str | None = None
+    for raw in reader.messages(topics=topics):
+        try:
+            transforms = reader.deserialize(raw).transforms
+        except DecodeError as err:
+            skipped[raw.topic] = skipped.get(raw.topic, 0) + 1
+            first_error = first_error or str(err)
+            continue
+        for stamped in transforms:
+            try:
+                stamp_ns, parent, child, T_parent_child = decode_transform(stamped)
+                tree.add(parent, child, T_parent_child, stamp_ns, static=raw.topic in static_topics)
+            except TransformError as err:
+                skipped[raw.topic] = skipped.get(raw.topic, 0) + 1
+                first_error = first_error or str(err)
+    if skipped:
+        counts = ", ".join(f"{n} on {topic}" for topic, n in sorted(skipped.items()))
+        log.warning("skipped %s bad tf entries (%s); first: %s", sum(skipped.values()), counts, first_error)
+    return tree
