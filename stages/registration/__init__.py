@@ -1,0 +1,31 @@
+"""Registration: GICP, Multi-Channel GICP (Servos & Waslander) and Color-ICP, plus scan-to-scan odometry.
+
+Typical use::
+
+    config = RegistrationConfig(method="mcgicp", channels="intensity")
+    target = prepare_pointset(points0, {"intensity": i0}, config)
+    source = prepare_pointset(points1, {"intensity": i1}, config)
+    result = register(source, target, np.eye(4), config)   # result.T_target_source
+"""
+
+from stages.registration.covariances import estimate_covariances, knn_indices
+from stages.registration.gicp import RegistrationConfig, RegistrationResult, register
+from stages.registration.odometry import OdometryStep, VoxelMap, run_odometry
+from stages.registration.pointset import CHANNEL_MODES, PointSet, pointset_from_frame, prepare_pointset
+from stages.registration.voxel import voxel_downsample
+
+__all__ = [
+    "CHANNEL_MODES",
+    "OdometryStep",
+    "PointSet",
+    "RegistrationConfig",
+    "RegistrationResult",
+    "VoxelMap",
+    "estimate_covariances",
+    "knn_indices",
+    "pointset_from_frame",
+    "prepare_pointset",
+    "register",
+    "run_odometry",
+    "voxel_downsample",
+]

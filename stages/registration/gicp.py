@@ -1,0 +1,328 @@
+"""Pairwise registration: GICP, Multi-Channel GICP and Color-ICP on prepared ``PointSet`` scans.
+
+All three minimise eq. 3 of Servos & Waslander, sum_i d_i^T (C_i^B + R C_i^A R^T)^-1 d_i with
+d_i = b_i - T a_i, by Gauss-Newton (or Levenberg-Marquardt) over SE(3), re-finding correspondences
+every iteration. They differ in the covariances (plane model; MC-GICP eq. 6-10; 0.5 I for
+Color-ICP's point-to-point cost) and in the correspondence space (3-D for GICP; (3 + n)-D weighted
+by alpha for MC-GICP and Color-ICP, Johnson & Kang).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.errors import ConfigError, InputError, TransformError
+from pipeline.transforms import exp_se3, is_rigid
+from stages.registration.gicp_kernels import (
+    ROBUST_CAUCHY,
+    ROBUST_HUBER,
+    ROBUST_NONE,
+    linearize_kernel,
+)
+from stages.registration.pointset import CHANNEL_MODES, PointSet
+
+METHODS = ("gicp", "mcgicp", "color_icp")
+ROBUST_KERNELS = {"none": ROBUST_NONE, "huber": ROBUST_HUBER, "cauchy": ROBUST_CAUCHY}
+OPTIMIZERS = ("gauss_newton", "levenberg_marquardt")
+MIN_CORRESPONDENCES = 6
+
+
+@dataclass
+class RegistrationConfig:
+    """Settings of one registration (and of the scan preparation it needs).
+
+    Attributes:
+        method: ``gicp``, ``mcgicp`` or ``color_icp``.
+        channels: descriptor channels, ``none`` | ``intensity`` | ``color`` | ``combined``.
+        voxel_size_m: voxel-grid downsampling before covariances (0: none).
+        k_neighbors: neighbours for each covariance (itself included).
+        epsilon: variance along the surface normal (plane model, eq. 4).
+        max_correspondence_distance_m: correspondences farther apart (in the search space) are ignored.
+        max_iterations: Gauss-Newton iterations (one correspondence search each) at most.
+        rotation_eps_deg: converged when the update rotates less than this...
+        translation_eps_m: ...and translates less than this.
+        robust_kernel: ``none``, ``huber`` or ``cauchy`` on the Mahalanobis distance.
+        robust_scale: kernel width (Mahalanobis units).
+        optimizer: ``gauss_newton`` or ``levenberg_marquardt``.
+        lm_initial_lambda: Levenberg-Marquardt damping at the start.
+        channel_weight_m: kd-tree weight alpha_d = channel_weight_m^2 / var_d: one standard deviation
+            of a descriptor counts as this many metres in the (3 + n)-D correspondence search.
+        channel_alpha: explicit alpha per descriptor channel (overrides ``channel_weight_m``).
+        descriptor_variance_scale: Lambda = scale * (descriptor covariance of the scan), eq. 7.
+        descriptor_covariance: explicit Lambda (n x n), overrides the estimate.
+        degeneracy_threshold: flag degenerate when min/max eigenvalue of the 6x6 Hessian is below it.
+        workers: threads for kd-tree queries (-1: all cores).
+    """
+
+    method: str = "gicp"
+    channels: str = "none"
+    voxel_size_m: float = 0.25
+    k_neighbors: int = 20
+    epsilon: float = 1e-3
+    max_correspondence_distance_m: float = 1.0
+    max_iterations: int = 64
+    rotation_eps_deg: float = 0.1
+    translation_eps_m: float = 1e-3
+    robust_kernel: str = "none"
+    robust_scale: float = 1.0
+    optimizer: str = "gauss_newton"
+    lm_initial_lambda: float = 1e-4
+    channel_weight_m: float = 0.1
+    channel_alpha: tuple[float, ...] | None = None
+    descriptor_variance_scale: float = 1.0
+    descriptor_covariance: tuple[tuple[float, ...], ...] | None = None
+    degeneracy_threshold: float = 1e-3
+    workers: int = -1
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ConfigError(
+                f"unknown registration method {self.method!r}; expected one of {', '.join(METHODS)}"
+            )
+        if self.channels not in CHANNEL_MODES:
+            raise ConfigError(
+                f"unknown channel mode {self.channels!r}; expected one of {', '.join(CHANNEL_MODES)}"
+            )
+        if self.method in ("mcgicp", "color_icp") and self.channels == "none":
+            raise ConfigError(
+                f"method {self.method!r} needs descriptor channels (intensity, color or combined)"
+            )
+        if self.robust_kernel not in ROBUST_KERNELS:
+            raise ConfigError(
+                f"unknown robust kernel {self.robust_kernel!r}; expected one of {', '.join(ROBUST_KERNELS)}"
+            )
+        if self.optimizer not in OPTIMIZERS:
+            raise ConfigError(
+                f"unknown optimizer {self.optimizer!r}; expected one of {', '.join(OPTIMIZERS)}"
+            )
+        positive = {
+            "epsilon": self.epsilon,
+            "max_correspondence_distance_m": self.max_correspondence_distance_m,
+            "robust_scale": self.robust_scale,
+            "channel_weight_m": self.channel_weight_m,
+            "descriptor_variance_scale": self.descriptor_variance_scale,
+        }
+        for name, value in positive.items():
+            if not (np.isfinite(value) and value > 0):
+                raise ConfigError(f"{name} must be a finite number > 0, got {value}")
+        if self.k_neighbors < 3:
+            raise ConfigError(f"k_neighbors must be >= 3, got {self.k_neighbors}")
+        if self.max_iterations < 1:
+            raise ConfigError(f"max_iterations must be >= 1, got {self.max_iterations}")
+        if self.voxel_size_m < 0:
+            raise ConfigError(f"voxel_size_m must be >= 0, got {self.voxel_size_m}")
+        n = len(CHANNEL_MODES[self.channels])
+        if self.channel_alpha is not None and len(self.channel_alpha) != n:
+            raise ConfigError(f"channel_alpha needs {n} values for channels {self.channels!r}")
+
+
+@dataclass
+class RegistrationResult:
+    """Outcome of one registration.
+
+    Attributes:
+        T_target_source: (4, 4) float64, source points into the target frame.
+        fitness: fraction of source points with a correspondence within the maximum distance.
+        rmse_m: RMS Euclidean distance of those correspondences, metres (inf when none).
+        iterations: optimiser iterations run.
+        converged: the update fell below the thresholds before ``max_iterations``; False for a
+            failed pair (too few correspondences).
+        hessian_eigenvalues: (6,) ascending eigenvalues of the Gauss-Newton Hessian at the solution
+            (parameters: rotation vector rad, translation m, source frame).
+        degenerate: min/max Hessian eigenvalue ratio below the configured threshold.
+        n_correspondences: correspondences used in the last linearisation.
+        cost_history: cost (eq. 3, robustified) at each iteration's linearisation.
+    """
+
+    T_target_source: NDArray[np.float64]
+    fitness: float
+    rmse_m: float
+    iterations: int
+    converged: bool
+    hessian_eigenvalues: NDArray[np.float64]
+    degenerate: bool
+    n_correspondences: int = 0
+    cost_history: list[float] = field(default_factory=list)
+
+
+def channel_alpha_for(target: PointSet, config: RegistrationConfig) -> NDArray[np.float64]:
+    """Kd-tree weights alpha (n,) of the descriptor channels (the target scan's variances set them)."""
+    if config.channel_alpha is not None:
+        return np.asarray(config.channel_alpha, dtype=np.float64)
+    return config.channel_weight_m**2 / np.maximum(target.channel_variance, 1e-12)
+
+
+class _Matcher:
+    """Nearest-neighbour correspondences of transformed source points in the target."""
+
+    def __init__(self, source: PointSet, target: PointSet, config: RegistrationConfig) -> None:
+        self.source = source
+        self.config = config
+        self.multichannel = config.method in ("mcgicp", "color_icp")
+        if self.multichannel:
+            alpha = channel_alpha_for(target, config)
+            self.tree = target.feature_tree(alpha)
+            self.source_features = np.empty((source.n_points, 3 + alpha.shape[0]))
+            self.source_features[:, 3:] = source.scaled_descriptors(alpha)
+        else:
+            self.tree = target.tree
+        self.target_points = target.points_xyz
+
+    def match(self, T: NDArray[np.float64]) -> NDArray[np.int64]:
+        """(N,) target index per source point, -1 beyond the maximum correspondence distance."""
+        moved = self.source.points_xyz @ T[:3, :3].T + T[:3, 3]
+        query = moved
+        if self.multichannel:
+            self.source_features[:, :3] = moved
+            query = self.source_features
+        dist, idx = self.tree.query(
+            query,
+            k=1,
+            distance_upper_bound=self.config.max_correspondence_distance_m,
+            workers=self.config.workers,
+        )
+        idx = np.where(np.isfinite(dist), idx, -1).astype(np.int64)
+        return idx
+
+    def fitness_rmse(self, T: NDArray[np.float64], corr: NDArray[np.int64]) -> tuple[float, float]:
+        """(fraction of source points matched within the max distance in 3-D, RMS distance m)."""
+        valid = corr >= 0
+        if not np.any(valid):
+            return 0.0, float("inf")
+        moved = self.source.points_xyz[valid] @ T[:3, :3].T + T[:3, 3]
+        sq = np.sum((moved - self.target_points[corr[valid]]) ** 2, axis=1)
+        inlier = sq <= self.config.max_correspondence_distance_m**2
+        if not np.any(inlier):
+            return 0.0, float("inf")
+        return float(np.count_nonzero(inlier)) / self.source.n_points, float(np.sqrt(sq[inlier].mean()))
+
+
+def _check_inputs(
+    source: PointSet, target: PointSet, T_init: NDArray[np.float64], config: RegistrationConfig
+) -> None:
+    for name, ps in (("source", source), ("target", target)):
+        if ps.points_xyz.ndim != 2 or ps.points_xyz.shape[1] != 3:
+            raise InputError(f"{name} points must be (N, 3), got {ps.points_xyz.shape}")
+        if ps.covariances.shape != (ps.n_points, 3, 3):
+            raise InputError(f"{name} covariances must be ({ps.n_points}, 3, 3), got {ps.covariances.shape}")
+        if ps.n_points < MIN_CORRESPONDENCES:
+            raise InputError(
+                f"{name} scan has {ps.n_points} points; registration needs at least {MIN_CORRESPONDENCES}"
+            )
+    if config.method in ("mcgicp", "color_icp"):
+        wanted = CHANNEL_MODES[config.channels]
+        for name, ps in (("source", source), ("target", target)):
+            if ps.channel_names != wanted:
+                raise InputError(
+                    f"{name} scan was prepared with channels {ps.channel_names}, config asks for {wanted}"
+                )
+    if not is_rigid(np.asarray(T_init, dtype=np.float64)):
+        raise TransformError("initial T_target_source is not a finite 4x4 rigid transform")
+
+
+def register(
+    source: PointSet,
+    target: PointSet,
+    T_target_source_init: NDArray[np.float64] | None = None,
+    config: RegistrationConfig | None = None,
+) -> RegistrationResult:
+    """Estimate T_target_source aligning ``source`` onto ``target``.
+
+    Args:
+        source: prepared source scan (``prepare_pointset``), points a_i.
+        target: prepared target scan, points b_j.
+        T_target_source_init: (4, 4) initial guess; identity when None.
+        config: method and settings; default plain GICP.
+
+    Returns:
+        RegistrationResult. Scans without overlap give fitness 0 and converged False (no exception).
+
+    Raises:
+        InputError: malformed point sets or channels that do not match the config.
+        TransformError: a non-rigid initial guess.
+    """
+    config = RegistrationConfig() if config is None else config
+    T = np.eye(4) if T_target_source_init is None else np.array(T_target_source_init, dtype=np.float64)
+    _check_inputs(source, target, T, config)
+    matcher = _Matcher(source, target, config)
+    robust = ROBUST_KERNELS[config.robust_kernel]
+    n_chunks = 8
+    rot_eps = np.radians(config.rotation_eps_deg)
+    lm_lambda = config.lm_initial_lambda
+    H = np.zeros((6, 6))
+    converged = False
+    iterations = 0
+    used = 0
+    history: list[float] = []
+    corr = matcher.match(T)
+
+    def linearize(
+        T_now: NDArray[np.float64], c: NDArray[np.int64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], float, int]:
+        return linearize_kernel(  # type: ignore[no-any-return]
+            source.points_xyz,
+            source.covariances,
+            target.points_xyz,
+            target.covariances,
+            c,
+            np.ascontiguousarray(T_now),
+            robust,
+            config.robust_scale,
+            n_chunks,
+        )
+
+    for iteration in range(config.max_iterations):
+        H, g, cost, used = linearize(T, corr)
+        history.append(float(cost))
+        if used < MIN_CORRESPONDENCES:
+            break
+        iterations = iteration + 1
+        if config.optimizer == "gauss_newton":
+            delta = _solve(H, g, 0.0)
+            T = T @ exp_se3(delta)
+        else:
+            delta = np.zeros(6)
+            for _ in range(10):
+                delta = _solve(H, g, lm_lambda)
+                T_try = T @ exp_se3(delta)
+                _, _, cost_try, _ = linearize(T_try, corr)
+                if cost_try <= cost:
+                    T = T_try
+                    lm_lambda = max(lm_lambda / 10.0, 1e-12)
+                    break
+                lm_lambda *= 10.0
+            else:
+                delta = np.zeros(6)
+        if np.linalg.norm(delta[:3]) < rot_eps and np.linalg.norm(delta[3:]) < config.translation_eps_m:
+            converged = True  # H, correspondences and fitness are those of the last linearisation
+            break
+        corr = matcher.match(T)
+    fitness, rmse = matcher.fitness_rmse(T, corr)
+    if used < MIN_CORRESPONDENCES:
+        converged = False
+        fitness = 0.0 if used == 0 else fitness
+    eig = np.asarray(np.linalg.eigvalsh(0.5 * (H + H.T)), dtype=np.float64)
+    ratio = float(eig[0] / eig[-1]) if eig[-1] > 0 else 0.0
+    return RegistrationResult(
+        T_target_source=T,
+        fitness=fitness,
+        rmse_m=rmse,
+        iterations=iterations,
+        converged=converged,
+        hessian_eigenvalues=eig,
+        degenerate=ratio < config.degeneracy_threshold,
+        n_correspondences=int(used),
+        cost_history=history,
+    )
+
+
+def _solve(H: NDArray[np.float64], g: NDArray[np.float64], damping: float) -> NDArray[np.float64]:
+    """delta solving (H + damping * diag(H)) delta = -g (least squares when singular)."""
+    A = H + damping * np.diag(np.diag(H)) if damping > 0 else H
+    try:
+        return np.asarray(np.linalg.solve(A, -g))
+    except np.linalg.LinAlgError:
+        return np.asarray(np.linalg.lstsq(A, -g, rcond=None)[0])

@@ -1,0 +1,216 @@
+"""``PointSet``: a scan prepared once for registration (downsampled, descriptors, covariances).
+
+The same PointSet serves as source of one pair and target of the next; its kd-trees are built
+lazily and cached.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from pipeline.errors import ConfigError, InputError
+from pipeline.frames import LidarFrame
+from stages.registration.covariances import estimate_covariances, knn_indices
+from stages.registration.voxel import voxel_downsample
+
+if TYPE_CHECKING:
+    from stages.registration.gicp import RegistrationConfig
+
+CHANNEL_MODES: dict[str, tuple[str, ...]] = {
+    "none": (),
+    "intensity": ("intensity",),
+    "color": ("r", "g", "b"),
+    "combined": ("intensity", "r", "g", "b"),
+}
+"""Descriptor channels of each channel mode, in column order."""
+
+MIN_CHANNEL_VARIANCE = 1e-12
+POINT_TO_POINT_VARIANCE = 0.5
+"""Covariance 0.5 I on both sides gives W = I: Color-ICP's point-to-point cost."""
+
+
+def channel_names_for(mode: str) -> tuple[str, ...]:
+    """Descriptor channel names of a channel mode; ConfigError for an unknown mode."""
+    try:
+        return CHANNEL_MODES[mode]
+    except KeyError as err:
+        raise ConfigError(
+            f"unknown channel mode {mode!r}; expected one of {', '.join(CHANNEL_MODES)}"
+        ) from err
+
+
+@dataclass
+class PointSet:
+    """A scan ready for registration.
+
+    Attributes:
+        points_xyz: (N, 3) float64 points, metres, scan frame.
+        channels: (N, n) float64 descriptors in ``channel_names`` order (intensity as recorded,
+            colour scaled to [0, 1]); n = 0 for plain GICP.
+        covariances: (N, 3, 3) float64 model covariances (GICP eq. 4-5 or MC-GICP eq. 6-10).
+        channel_names: names of the descriptor columns.
+        descriptor_covariance: (n, n) Lambda used for the MC-GICP kernel weights (eq. 7).
+        channel_variance: (n,) variance of each descriptor over the scan (sets kd-tree weights).
+        dropped_points: non-finite points removed before downsampling.
+        stamp_ns: scan time, ns (0 when unknown).
+        frame_id: frame of ``points_xyz``.
+    """
+
+    points_xyz: NDArray[np.float64]
+    channels: NDArray[np.float64]
+    covariances: NDArray[np.float64]
+    channel_names: tuple[str, ...] = ()
+    descriptor_covariance: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 0)))
+    channel_variance: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    dropped_points: int = 0
+    stamp_ns: int = 0
+    frame_id: str = ""
+    _tree: cKDTree | None = field(default=None, init=False, repr=False, compare=False)
+    _feature_trees: dict[tuple[float, ...], cKDTree] = field(
+        default_factory=dict, init=False, repr=False, compare=False
+    )
+
+    @property
+    def n_points(self) -> int:
+        return int(self.points_xyz.shape[0])
+
+    @property
+    def tree(self) -> cKDTree:
+        """kd-tree over ``points_xyz`` (built on first use)."""
+        if self._tree is None:
+            self._tree = cKDTree(self.points_xyz)
+        return self._tree
+
+    def scaled_descriptors(self, channel_alpha: NDArray[np.float64]) -> NDArray[np.float64]:
+        """(N, n) descriptors multiplied by sqrt(alpha) (the weighted kd-tree coordinates)."""
+        return self.channels * np.sqrt(channel_alpha)[None, :]
+
+    def feature_tree(self, channel_alpha: NDArray[np.float64]) -> cKDTree:
+        """kd-tree over (3 + n)-D points [xyz, sqrt(alpha) * descriptors] (cached per alpha)."""
+        key = tuple(float(a) for a in channel_alpha)
+        tree = self._feature_trees.get(key)
+        if tree is None:
+            features = np.concatenate([self.points_xyz, self.scaled_descriptors(channel_alpha)], axis=1)
+            tree = cKDTree(features)
+            self._feature_trees[key] = tree
+        return tree
+
+
+def _descriptor_columns(
+    n_points: int, channels: Mapping[str, NDArray[np.generic]] | None, names: tuple[str, ...]
+) -> NDArray[np.float64]:
+    columns = []
+    available = {} if channels is None else channels
+    for name in names:
+        if name not in available:
+            have = ", ".join(sorted(available)) or "none"
+            raise InputError(f"scan has no {name!r} channel (channels: {have})")
+        values = np.asarray(available[name])
+        if values.shape != (n_points,):
+            raise InputError(f"channel {name!r} has shape {values.shape}, expected ({n_points},)")
+        column = values.astype(np.float64)
+        if name in ("r", "g", "b") and (
+            np.issubdtype(values.dtype, np.integer) or column.max(initial=0) > 1.0
+        ):
+            column = column / 255.0
+        columns.append(column)
+    if not columns:
+        return np.zeros((n_points, 0))
+    return np.stack(columns, axis=1)
+
+
+def _descriptor_covariance(
+    descriptors: NDArray[np.float64], mode: str, scale: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(Lambda (n, n), per-channel variance (n,)) estimated from the scan (paper section IV).
+
+    intensity: the variance of the intensities. color: equal independent RGB variances (their mean).
+    combined: the full empirical covariance of (intensity, r, g, b), inter-channel terms included.
+    """
+    n = descriptors.shape[1]
+    if n == 0:
+        return np.zeros((0, 0)), np.zeros(0)
+    variance = np.maximum(descriptors.var(axis=0), MIN_CHANNEL_VARIANCE)
+    if mode == "color":
+        lam = np.eye(3) * float(variance.mean())
+    elif mode == "combined":
+        lam = np.atleast_2d(np.cov(descriptors, rowvar=False, bias=True))
+        lam = lam + np.eye(n) * MIN_CHANNEL_VARIANCE
+    else:
+        lam = np.diag(variance)
+    return lam * scale, variance
+
+
+def prepare_pointset(
+    points_xyz: NDArray[np.floating],
+    channels: Mapping[str, NDArray[np.generic]] | None,
+    config: RegistrationConfig,
+    *,
+    stamp_ns: int = 0,
+    frame_id: str = "",
+) -> PointSet:
+    """Drop non-finite points, voxel-downsample (averaging descriptors) and compute covariances.
+
+    Args:
+        points_xyz: (N, 3) points, metres, scan frame.
+        channels: per-point arrays by name (``intensity``, ``r``, ``g``, ``b``), as in LidarFrame.
+        config: registration settings (method, channels, voxel size, k, epsilon, Lambda).
+
+    Raises:
+        InputError: wrong shapes, a missing channel, fewer than k points after downsampling.
+        ConfigError: unknown channel mode.
+    """
+    names = channel_names_for(config.channels)
+    pts = np.asarray(points_xyz, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise InputError(f"points_xyz must be (N, 3), got {pts.shape}")
+    desc = _descriptor_columns(pts.shape[0], channels, names)
+    finite = np.all(np.isfinite(pts), axis=1) & np.all(np.isfinite(desc), axis=1)
+    dropped = int(pts.shape[0] - np.count_nonzero(finite))
+    pts, desc = pts[finite], desc[finite]
+    pts, desc, _ = voxel_downsample(pts, config.voxel_size_m, desc)
+    if pts.shape[0] < config.k_neighbors:
+        raise InputError(
+            f"scan has {pts.shape[0]} points after dropping {dropped} non-finite ones and "
+            f"{config.voxel_size_m} m voxel downsampling; at least k={config.k_neighbors} are needed"
+        )
+    if config.descriptor_covariance is not None and len(names) > 0:
+        lam = np.atleast_2d(np.asarray(config.descriptor_covariance, dtype=np.float64))
+        variance = np.maximum(desc.var(axis=0), MIN_CHANNEL_VARIANCE)
+    else:
+        lam, variance = _descriptor_covariance(desc, config.channels, config.descriptor_variance_scale)
+    if config.method == "color_icp":
+        cov = np.broadcast_to(np.eye(3) * POINT_TO_POINT_VARIANCE, (pts.shape[0], 3, 3)).copy()
+    elif config.method == "mcgicp":
+        nbrs = knn_indices(pts, config.k_neighbors, workers=config.workers)
+        cov = estimate_covariances(
+            pts, config.k_neighbors, config.epsilon, desc, lam, neighbors=nbrs, workers=config.workers
+        )
+    else:
+        cov = estimate_covariances(pts, config.k_neighbors, config.epsilon, workers=config.workers)
+    return PointSet(
+        points_xyz=np.ascontiguousarray(pts),
+        channels=np.ascontiguousarray(desc),
+        covariances=cov,
+        channel_names=names,
+        descriptor_covariance=lam,
+        channel_variance=variance,
+        dropped_points=dropped,
+        stamp_ns=stamp_ns,
+        frame_id=frame_id,
+    )
+
+
+def pointset_from_frame(frame: LidarFrame, config: RegistrationConfig) -> PointSet:
+    """``prepare_pointset`` on a LidarFrame (its channels, stamp and frame id)."""
+    pointset = prepare_pointset(
+        frame.points_xyz, frame.channels, config, stamp_ns=frame.stamp_ns, frame_id=frame.frame_id
+    )
+    pointset.dropped_points += frame.dropped_points
+    return pointset

@@ -1,0 +1,177 @@
+"""Scan-to-scan odometry and the voxel map on synthetic sequences with known poses."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from pipeline.errors import InputError
+from pipeline.frames import LidarFrame
+from pipeline.transforms import apply, from_xyz_rpy, invert, rotation_error_deg, translation_error_m
+from stages.registration import RegistrationConfig, VoxelMap, prepare_pointset, run_odometry
+from tests.test_registration import room_scene
+
+
+def true_poses(n: int) -> list[NDArray[np.float64]]:
+    """T_world_lidar of a sensor driving 0.25 m per scan along x while turning 2 deg per scan."""
+    return [from_xyz_rpy(-1.5 + 0.25 * k, 0.05 * k, 1.2, 0.0, 0.0, 2.0 * k) for k in range(n)]
+
+
+def scan_frames(rng: np.random.Generator, poses: list[NDArray[np.float64]]) -> list[LidarFrame]:
+    frames = []
+    for k, T_world_lidar in enumerate(poses):
+        world = room_scene(rng, 8000)
+        intensity = (50 + 40 * np.sin(world[:, 0] * 3.0)).astype(np.float32)
+        frames.append(
+            LidarFrame(
+                stamp_ns=1_000_000_000 + k * 100_000_000,
+                topic="/lidar",
+                frame_id="lidar",
+                points_xyz=apply(invert(T_world_lidar), world).astype(np.float32),
+                channels={"intensity": intensity},
+            )
+        )
+    return frames
+
+
+def test_odometry_tracks_known_trajectory_and_builds_map() -> None:
+    rng = np.random.default_rng(20)
+    poses = true_poses(8)
+    frames = scan_frames(rng, poses)
+    config = RegistrationConfig(voxel_size_m=0.1)
+    voxel_map = VoxelMap(0.2)
+    steps = run_odometry(frames, config, voxel_map=voxel_map)
+    assert [s.index for s in steps] == list(range(8))
+    assert [s.stamp_ns for s in steps] == [f.stamp_ns for f in frames]
+    for step, T_world_lidar in zip(steps, poses, strict=True):
+        T_map_lidar_true = invert(poses[0]) @ T_world_lidar
+        assert translation_error_m(step.T_map_lidar, T_map_lidar_true) < 0.02
+        assert rotation_error_deg(step.T_map_lidar, T_map_lidar_true) < 0.2
+        assert step.converged and step.fitness > 0.9 and not step.degenerate
+    assert all(s.iterations > 0 for s in steps[1:])
+    # the map (first scan's frame) holds the room: every map point lies within 5 cm of a room surface
+    map_world = apply(poses[0], voxel_map.points())
+    inside = (np.abs(map_world[:, 0]) <= 4.06) & (np.abs(map_world[:, 1]) <= 3.06)
+    assert inside.mean() > 0.999
+    assert set(voxel_map.channels()) == {"intensity"}
+    assert voxel_map.channels()["intensity"].dtype == np.float32
+
+
+def test_failed_pair_is_reported_and_the_map_keeps_going() -> None:
+    rng = np.random.default_rng(21)
+    poses = true_poses(5)
+    frames = scan_frames(rng, poses)
+    frames[3].points_xyz = frames[3].points_xyz + np.float32(200.0)  # no overlap with scan 2
+    voxel_map = VoxelMap(0.2)
+    steps = run_odometry(frames, RegistrationConfig(voxel_size_m=0.1), voxel_map=voxel_map)
+    assert len(steps) == 5
+    assert steps[3].fitness == 0.0 and not steps[3].converged
+    assert steps[2].converged and steps[2].fitness > 0.9
+    assert voxel_map.n_voxels > 0
+
+
+def test_external_odometry_guess_is_used() -> None:
+    rng = np.random.default_rng(22)
+    poses = [from_xyz_rpy(0.6 * (k % 2), 0.0, 1.0, 0.0, 0.0, 8.0 * (k % 2)) for k in range(4)]  # zig-zag
+    frames = scan_frames(rng, poses)
+    odom = [T @ from_xyz_rpy(0.02, -0.02, 0.0, 0.0, 0.0, 0.5) for T in poses]  # noisy external odometry
+    steps = run_odometry(frames, RegistrationConfig(voxel_size_m=0.1), initial_motion=odom)
+    for step, T_world_lidar in zip(steps, poses, strict=True):
+        T_true = invert(poses[0]) @ T_world_lidar
+        assert translation_error_m(step.T_map_lidar, T_true) < 0.02
+        assert rotation_error_deg(step.T_map_lidar, T_true) < 0.2
+    with pytest.raises(InputError, match="initial_motion has 2 poses"):
+        run_odometry(frames, RegistrationConfig(voxel_size_m=0.1), initial_motion=odom[:2])
+
+
+def test_odometry_accepts_prepared_pointsets_with_mcgicp() -> None:
+    rng = np.random.default_rng(23)
+    poses = true_poses(4)
+    frames = scan_frames(rng, poses)
+    config = RegistrationConfig(method="mcgicp", channels="intensity", voxel_size_m=0.1)
+    pointsets = [prepare_pointset(f.points_xyz, f.channels, config, stamp_ns=f.stamp_ns) for f in frames]
+    voxel_map = VoxelMap(0.25)
+    steps = run_odometry(pointsets, config, voxel_map=voxel_map)
+    final_true = invert(poses[0]) @ poses[-1]
+    assert translation_error_m(steps[-1].T_map_lidar, final_true) < 0.02
+    assert rotation_error_deg(steps[-1].T_map_lidar, final_true) < 0.2
+    assert set(voxel_map.channels()) == {"intensity"}
+    with pytest.raises(InputError, match="PointSet or LidarFrame"):
+        run_odometry([np.zeros((10, 3))], config)  # type: ignore[list-item]
+
+
+def test_voxel_map_averages_positions_and_channels() -> None:
+    voxel_map = VoxelMap(1.0)
+    voxel_map.insert(
+        np.array([[0.2, 0.2, 0.2], [0.4, 0.4, 0.4], [5.5, 0.5, 0.5]]),
+        {
+            "intensity": np.array([10.0, 20.0, 7.0]),
+            "r": np.array([0, 100, 255], np.uint8),
+            "g": np.zeros(3, np.uint8),
+            "b": np.zeros(3, np.uint8),
+        },
+    )
+    voxel_map.insert(
+        np.array([[0.9, 0.9, 0.9], [np.nan, 0, 0]]),
+        {
+            "intensity": np.array([30.0, 1.0]),
+            "r": np.array([200, 0], np.uint8),
+            "g": np.zeros(2, np.uint8),
+            "b": np.zeros(2, np.uint8),
+        },
+    )
+    assert voxel_map.n_voxels == 2
+    pts = voxel_map.points()
+    order = np.argsort(pts[:, 0])
+    np.testing.assert_allclose(pts[order[0]], [0.5, 0.5, 0.5])
+    np.testing.assert_allclose(pts[order[1]], [5.5, 0.5, 0.5])
+    channels = voxel_map.channels()
+    np.testing.assert_allclose(np.asarray(channels["intensity"][order], dtype=np.float64), [20.0, 7.0])
+    np.testing.assert_array_equal(channels["r"][order], [100, 255])
+    assert channels["r"].dtype == np.uint8
+    voxel_map.insert(np.array([[0.1, 0.1, 0.1]]))  # a scan without channels: no channel survives
+    assert voxel_map.channels() == {}
+    with pytest.raises(InputError, match="voxel size"):
+        VoxelMap(0.0)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason=(
+        "known gap: on the simulated corridor (25 scans, 32 beams) GICP underestimates the motion along "
+        "the walls by ~24 % and MC-GICP-intensity does not do better (~25-28 %): the lidar's sensor-fixed "
+        "sampling (rings, incidence-dependent intensity) biases scan-to-scan matching towards zero motion"
+    ),
+)
+def test_corridor_mcgicp_drifts_less_than_gicp() -> None:
+    """Paper Fig. 3 on engineer C's simulated poster corridor: MC-GICP should hold the along-wall motion."""
+    pytest.importorskip("workflows.simulator")
+    from workflows.simulator.lidar import LidarModel, simulate_scan
+    from workflows.simulator.motion import LoopMotion
+    from workflows.simulator.raycast import build_grid
+    from workflows.simulator.scene import build_scene
+
+    scene = build_scene("corridor", 0)
+    grid = build_grid(scene.triangles)
+    motion = LoopMotion(scene.route, 1.5)
+    model = LidarModel(beams=32, columns=1024, seed=0)
+    T_base_lidar = from_xyz_rpy(0.0, 0.0, scene.lidar_height_m, 0.0, 0.0, 0.0)
+    rng = np.random.default_rng(0)
+    frames, poses = [], []
+    for k in range(25):
+        T_world_lidar = motion.T_world_base(k * 0.1) @ T_base_lidar
+        points, channels = simulate_scan(scene, grid, model, T_world_lidar, rng).unorganized()
+        frames.append(LidarFrame(k, "/lidar", "lidar", points, {"intensity": channels["intensity"]}))
+        poses.append(T_world_lidar)
+    T_true = invert(poses[0]) @ poses[-1]
+    path_m = sum(translation_error_m(poses[k], poses[k + 1]) for k in range(len(poses) - 1))
+    drift = {}
+    for method, channels_mode in (("gicp", "none"), ("mcgicp", "intensity")):
+        config = RegistrationConfig(method=method, channels=channels_mode, voxel_size_m=0.1)
+        steps = run_odometry(frames, config)
+        drift[method] = translation_error_m(steps[-1].T_map_lidar, T_true) / path_m
+    print(f"corridor drift over {path_m:.2f} m: {drift}")
+    assert drift["gicp"] > 0.05
+    assert drift["mcgicp"] < 0.5 * drift["gicp"]
