@@ -38,14 +38,45 @@ class TopicInfo:
 
 
 @dataclass(frozen=True)
+class ChannelInfo:
+    """How a channel is stored in its log, for byte-exact copies (``stages.sinks.writeback``).
+
+    One object per channel (MCAP channel, ROS bag connection), shared by its messages.
+
+    Attributes:
+        topic: topic name.
+        message_encoding: ``cdr`` or ``ros1`` (for MCAP: the channel's own value).
+        schema_name: type name as the log spells it (``sensor_msgs/PointCloud2`` in ROS 1 logs).
+        schema_encoding: ``ros2msg``, ``ros2idl``, ``ros1msg`` (MCAP: its own value), or ``""``
+            when the log carries no definition.
+        schema_data: the definition bytes as stored (empty when none).
+        metadata: channel metadata as sorted (key, value) pairs: MCAP channel metadata; ROS 1
+            ``md5sum``/``callerid``/``latching``; ROS 2 ``offered_qos_profiles`` (rosbag2 YAML).
+    """
+
+    topic: str
+    message_encoding: str
+    schema_name: str
+    schema_encoding: str
+    schema_data: bytes
+    metadata: tuple[tuple[str, str], ...] = ()
+
+
+@dataclass(frozen=True)
 class RawMessage:
-    """One undecoded message: its topic, type, receive time (ns) and payload bytes."""
+    """One undecoded message: its topic, type, receive time (ns) and payload bytes.
+
+    ``publish_time_ns`` is set where the container stores one (MCAP), else None; ``channel`` says
+    how the message's channel is stored (set by every fleetcal reader; None for hand-made ones).
+    """
 
     topic: str
     msgtype: str
     log_time_ns: int
     data: bytes | memoryview
     serialization: Serialization
+    publish_time_ns: int | None = None
+    channel: ChannelInfo | None = None
 
 
 class LogReader(Protocol):

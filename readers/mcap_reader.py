@@ -25,7 +25,7 @@ from mcap.records import Channel, Chunk, Footer, Message, Schema
 from mcap.stream_reader import MAGIC_SIZE, StreamReader, breakup_chunk
 
 from pipeline.errors import ReaderError, TruncatedLogError
-from readers.base import LogFormat, RawMessage, Serialization, TopicInfo
+from readers.base import ChannelInfo, LogFormat, RawMessage, Serialization, TopicInfo
 from readers.typesys import DefinitionEncoding, LogTypes, TypeDefinition, build_log_types, normalize_msgtype
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -120,6 +120,7 @@ class McapLogReader:
                 lost_bytes=self.truncation.lost_bytes,
             )
         self._topics, self._types = self._build_topics(scan.counts)
+        self._channel_infos: dict[int, ChannelInfo] = {}
 
     def _read_header(self, stream: IO[bytes]) -> str:
         """The profile named in the Header record; ReaderError when the first record is no header."""
@@ -252,6 +253,22 @@ class McapLogReader:
         else:
             yield from self._messages_streamed(wanted, start_ns, end_ns)
 
+    def channel_info(self, channel: Channel) -> ChannelInfo:
+        """How ``channel`` and its schema are stored (cached per channel id)."""
+        cached = self._channel_infos.get(channel.id)
+        if cached is None:
+            schema = self._schemas.get(channel.schema_id)
+            cached = ChannelInfo(
+                topic=channel.topic,
+                message_encoding=channel.message_encoding,
+                schema_name=schema.name if schema is not None else "",
+                schema_encoding=schema.encoding if schema is not None else "",
+                schema_data=bytes(schema.data) if schema is not None else b"",
+                metadata=tuple(sorted(channel.metadata.items())),
+            )
+            self._channel_infos[channel.id] = cached
+        return cached
+
     def _raw(self, channel: Channel, message: Message) -> RawMessage:
         info = self._topics[channel.topic]
         return RawMessage(
@@ -260,6 +277,8 @@ class McapLogReader:
             log_time_ns=message.log_time,
             data=message.data,
             serialization=_MESSAGE_ENCODINGS.get(channel.message_encoding, info.serialization),
+            publish_time_ns=message.publish_time,
+            channel=self.channel_info(channel),
         )
 
     def _messages_indexed(

@@ -17,7 +17,7 @@ from rosbags.rosbag1 import ReaderError as Rosbag1Error
 
 from pipeline.errors import ReaderError
 from readers.base import LogFormat, RawMessage, TopicInfo
-from readers.typesys import normalize_msgtype, topics_from_connections
+from readers.typesys import channel_info_from_connection, normalize_msgtype, topics_from_connections
 
 ROSBAG1_MAGIC = b"#ROSBAG V2.0\n"
 
@@ -43,6 +43,9 @@ class Rosbag1LogReader:
         except OSError as err:
             raise ReaderError(f"cannot read {self.path}: {err.strerror or err}") from err
         self._topics, self._types = topics_from_connections(self._reader.connections, "ros1")
+        self._channel_infos = {
+            c.id: channel_info_from_connection(c, "ros1") for c in self._reader.connections
+        }
         has_messages = self._reader.message_count > 0
         self._start_ns = self._reader.start_time if has_messages else 0
         self._end_ns = self._reader.end_time if has_messages else 0
@@ -83,6 +86,7 @@ class Rosbag1LogReader:
                     log_time_ns=stamp_ns,
                     data=data,
                     serialization="ros1",
+                    channel=self._channel_infos[conn.id],
                 )
         except Rosbag1Error as err:
             raise ReaderError(f"damaged ROS 1 bag {self.path}: {err}") from err

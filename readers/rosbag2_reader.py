@@ -23,7 +23,7 @@ from rosbags.rosbag2 import ReaderError as Rosbag2Error
 
 from pipeline.errors import ReaderError
 from readers.base import LogFormat, RawMessage, Serialization, TopicInfo
-from readers.typesys import normalize_msgtype, topics_from_connections
+from readers.typesys import channel_info_from_connection, normalize_msgtype, topics_from_connections
 
 
 class Rosbag2LogReader:
@@ -57,6 +57,9 @@ class Rosbag2LogReader:
             raise ReaderError(f"unsupported serialization {sorted(unsupported)} in ROS 2 bag {self.path}")
         self._serialization: Serialization = "cdr"
         self._topics, self._types = topics_from_connections(self._reader.connections, "cdr")
+        self._channel_infos = {
+            (c.topic, c.msgtype): channel_info_from_connection(c, "cdr") for c in self._reader.connections
+        }
         has_messages = self._reader.message_count > 0
         self._start_ns = self._reader.start_time if has_messages else 0
         self._end_ns = self._reader.end_time if has_messages else 0
@@ -98,6 +101,7 @@ class Rosbag2LogReader:
                     log_time_ns=stamp_ns,
                     data=zstandard.decompress(data) if decompress else data,
                     serialization=self._serialization,
+                    channel=self._channel_infos.get((conn.topic, conn.msgtype)),
                 )
         except (Rosbag2Error, sqlite3.Error, zstandard.ZstdError) as err:
             raise ReaderError(f"damaged ROS 2 bag {self.path}: {err}") from err

@@ -13,15 +13,24 @@ from __future__ import annotations
 import struct
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from functools import cache, lru_cache
 from typing import Any, Literal
 
-from rosbags.interfaces import Connection, MessageDefinitionFormat, Nodetype
+from rosbags.interfaces import (
+    Connection,
+    ConnectionExtRosbag1,
+    ConnectionExtRosbag2,
+    MessageDefinitionFormat,
+    Nodetype,
+)
+from rosbags.rosbag2.metadata import dump_qos_v8
 from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, TypesysError, get_types_from_idl, get_types_from_msg, get_typestore
+from rosbags.typesys.msg import denormalize_msgtype
 from rosbags.typesys.store import Typestore
 
 from pipeline.errors import DecodeError
-from readers.base import RawMessage, Serialization, TopicInfo
+from readers.base import ChannelInfo, RawMessage, Serialization, TopicInfo
 
 DefinitionEncoding = Literal["ros2msg", "ros2idl", "ros1msg", ""]
 
@@ -108,7 +117,9 @@ class LogTypes:
             raise DecodeError(msg) from err
 
 
+@cache
 def _base_fielddefs(serialization: Serialization) -> dict[str, Any]:
+    """Field definitions of the fallback store (built once per process; callers must copy)."""
     store = get_typestore(Stores.ROS1_NOETIC if serialization == "ros1" else Stores.LATEST)
     return dict(store.fielddefs)
 
@@ -150,9 +161,18 @@ def build_log_types(definitions: Iterable[TypeDefinition], serialization: Serial
 
     Returns:
         LogTypes whose ``undecodable`` lists each type that neither the log nor the fallback store
-        defines completely (with the reason).
+        defines completely (with the reason). Its typestore holds the log's topic types and the
+        types they use (not the whole fallback store), and is shared by every log with the same
+        definitions (cached per process; never register types in it).
     """
-    definitions = list(definitions)
+    cached = _build_log_types_cached(tuple(definitions), serialization)
+    return LogTypes(typestore=cached.typestore, undecodable=dict(cached.undecodable))
+
+
+@lru_cache(maxsize=64)
+def _build_log_types_cached(
+    definitions: tuple[TypeDefinition, ...], serialization: Serialization
+) -> LogTypes:
     log_typs: dict[str, Any] = {}
     broken: dict[str, str] = {}
     for definition in definitions:
@@ -164,13 +184,16 @@ def build_log_types(definitions: Iterable[TypeDefinition], serialization: Serial
         except (TypesysError, ValueError, IndexError) as err:
             broken[msgtype] = f"its definition in the log ({definition.encoding}) does not parse: {err}"
 
-    combined = _base_fielddefs(serialization)
+    combined = dict(_base_fielddefs(serialization))
     combined.update(log_typs)
     for name in _BUILTIN_TYPES:
         combined.pop(name, None)
+    needed: set[str] = set()
+    for definition in definitions:
+        needed |= _referenced_types(combined, normalize_msgtype(definition.msgtype))
     typestore = get_typestore(Stores.EMPTY)
     try:
-        typestore.register(combined)
+        typestore.register({name: combined[name] for name in sorted(needed) if name in combined})
     except TypesysError:
         typestore = get_typestore(Stores.EMPTY)
         typestore.register({k: v for k, v in log_typs.items() if k not in _BUILTIN_TYPES})
@@ -228,3 +251,39 @@ def topics_from_connections(
             msgdef=conn.msgdef.data,
         )
     return topics, types
+
+
+def channel_info_from_connection(conn: Connection, serialization: Serialization) -> ChannelInfo:
+    """How a rosbags connection is stored, as a ``ChannelInfo`` (for byte-exact copies).
+
+    ROS 1: schema name in ROS 1 spelling, ``ros1msg``, metadata ``md5sum`` and, where the connection
+    header has them, ``callerid`` and ``latching`` (``true``/``false``). ROS 2: ``ros2msg`` or
+    ``ros2idl`` by the stored definition's format, metadata ``offered_qos_profiles`` (rosbag2 YAML).
+    """
+    has_definition = conn.msgdef.format != MessageDefinitionFormat.NONE and bool(conn.msgdef.data.strip())
+    metadata: dict[str, str] = {}
+    if serialization == "ros1":
+        schema_name = denormalize_msgtype(conn.msgtype)
+        schema_encoding = "ros1msg" if has_definition else ""
+        if conn.digest:
+            metadata["md5sum"] = conn.digest
+        if isinstance(conn.ext, ConnectionExtRosbag1):
+            if conn.ext.callerid is not None:
+                metadata["callerid"] = conn.ext.callerid
+            if conn.ext.latching is not None:
+                metadata["latching"] = "true" if conn.ext.latching else "false"
+    else:
+        schema_name = normalize_msgtype(conn.msgtype)
+        schema_encoding = ""
+        if has_definition:
+            schema_encoding = "ros2idl" if conn.msgdef.format == MessageDefinitionFormat.IDL else "ros2msg"
+        if isinstance(conn.ext, ConnectionExtRosbag2):
+            metadata["offered_qos_profiles"] = dump_qos_v8(conn.ext.offered_qos_profiles)
+    return ChannelInfo(
+        topic=conn.topic,
+        message_encoding=serialization,
+        schema_name=schema_name,
+        schema_encoding=schema_encoding,
+        schema_data=conn.msgdef.data.encode() if has_definition else b"",
+        metadata=tuple(sorted(metadata.items())),
+    )
