@@ -123,7 +123,9 @@ class CameraModel:
             valid &= self._monotonic(p, valid)
         return uv, valid
 
-    def _distort(self, xn: NDArray[np.float64], yn: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def _distort(
+        self, xn: NDArray[np.float64], yn: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         if self.distortion_model == "none":
             return xn, yn
         k = self.coefficients(8)

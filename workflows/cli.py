@@ -93,6 +93,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     level = logging.DEBUG if args.verbose else logging.WARNING
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    if not args.verbose:
+        for noisy in ("distributed", "dask", "bokeh", "tornado", "numba"):
+            logging.getLogger(noisy).setLevel(logging.ERROR)
     try:
         return int(args.func(args))
     except UsageError as err:

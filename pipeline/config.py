@@ -1,0 +1,389 @@
+"""Typed configuration: dataclass sections loaded from TOML, environment and CLI overrides.
+
+Precedence (lowest first): the defaults below, a TOML file (``--config fleetcal.toml``), environment
+variables ``FLEETCAL_<SECTION>__<KEY>=value`` (e.g. ``FLEETCAL_CALIBRATION__PARTICLES=100``), then
+overrides from the command line (``{"calibration.particles": 100}``; ``None`` values are ignored so
+unset argparse options do not override).
+
+To add a setting, add a typed field with a default to its section dataclass (supported types:
+``bool``, ``int``, ``float``, ``str``, ``Literal[...]`` of str, ``list[int|float|str]`` and
+``X | None``), and, if it has a range, a check in that section's ``validate``. To add a section, add a
+dataclass and a field of that type on ``Config``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import types
+import typing
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import tomllib
+
+from pipeline.errors import ConfigError
+
+__all__ = [
+    "CalibrationConfig",
+    "Config",
+    "EngineConfig",
+    "IoConfig",
+    "MappingConfig",
+    "config_from_dict",
+    "config_to_dict",
+    "load_config",
+    "to_toml",
+    "write_toml",
+]
+
+ENV_PREFIX = "FLEETCAL_"
+
+
+@dataclass
+class IoConfig:
+    """Reading logs.
+
+    Attributes:
+        pairing_tolerance_ns: largest lidar/camera stamp difference for a pair, ns.
+        allow_truncated: read what is left of a truncated log instead of failing.
+    """
+
+    pairing_tolerance_ns: int = 50_000_000
+    allow_truncated: bool = False
+
+    def validate(self) -> None:
+        _require(self.pairing_tolerance_ns >= 0, "io.pairing_tolerance_ns", "must be >= 0")
+
+
+@dataclass
+class EngineConfig:
+    """Running per-frame stages (``pipeline.engine.Engine``).
+
+    Attributes:
+        workers: local worker processes (None: one per core; 0: in-process).
+        scheduler: ``tcp://HOST:PORT`` of an existing dask scheduler (None: local).
+        batch_size: frames per task.
+        max_in_flight: tasks submitted at once (None: 2 per worker + 1).
+        retries: times a failed task is retried.
+    """
+
+    workers: int | None = None
+    scheduler: str | None = None
+    batch_size: int = 32
+    max_in_flight: int | None = None
+    retries: int = 2
+
+    def validate(self) -> None:
+        _require(self.workers is None or self.workers >= 0, "engine.workers", "must be >= 0")
+        _require(self.batch_size >= 1, "engine.batch_size", "must be >= 1")
+        in_flight_ok = self.max_in_flight is None or self.max_in_flight >= 1
+        _require(in_flight_ok, "engine.max_in_flight", "must be >= 1")
+        _require(self.retries >= 0, "engine.retries", "must be >= 0")
+        _require(
+            self.scheduler is None or "://" in self.scheduler,
+            "engine.scheduler",
+            "must be an address like tcp://HOST:PORT",
+        )
+
+
+@dataclass
+class CalibrationConfig:
+    """Targetless lidar-camera calibration (GOM paper).
+
+    Attributes:
+        metric: alignment metric.
+        feature: lidar per-point feature (GOM section 3.1).
+        frames: lidar/camera pairs used.
+        particles: particle swarm size.
+        iterations: particle swarm iterations.
+        search_deg: half-width of the rotation search around the initial guess, degrees.
+        search_m: half-width of the translation search, metres.
+        blur_sigma_px: Gaussian blur of camera images before the Sobel, pixels.
+        k_neighbours: neighbours for lidar normals and sphere gradients.
+        seed: random seed.
+        repeats: seeded optimiser runs; their spread is the reported uncertainty.
+        keep_fraction: GOM only: fraction of in-view points with the largest lidar gradient kept.
+        estimate_focal: also estimate a common scale of fx and fy.
+        min_points: scans with fewer points are skipped.
+        motion_compensation: move lidar points to the camera stamp with the log's /tf odometry.
+    """
+
+    metric: Literal["gom", "nmi", "levinson"] = "gom"
+    feature: Literal["intensity", "range", "normals"] = "intensity"
+    frames: int = 10
+    particles: int = 200
+    iterations: int = 100
+    search_deg: float = 5.0
+    search_m: float = 0.2
+    blur_sigma_px: float = 1.0
+    k_neighbours: int = 8
+    seed: int = 0
+    repeats: int = 1
+    keep_fraction: float = 1.0
+    estimate_focal: bool = False
+    min_points: int = 100
+    motion_compensation: bool = True
+
+    def validate(self) -> None:
+        _require(self.frames >= 1, "calibration.frames", "must be >= 1")
+        _require(self.particles >= 1, "calibration.particles", "must be >= 1")
+        _require(self.iterations >= 1, "calibration.iterations", "must be >= 1")
+        _require(0 <= self.search_deg <= 180, "calibration.search_deg", "must be in [0, 180]")
+        _require(self.search_m >= 0, "calibration.search_m", "must be >= 0")
+        _require(self.blur_sigma_px >= 0, "calibration.blur_sigma_px", "must be >= 0")
+        _require(self.k_neighbours >= 2, "calibration.k_neighbours", "must be >= 2")
+        _require(self.repeats >= 1, "calibration.repeats", "must be >= 1")
+        _require(0 < self.keep_fraction <= 1, "calibration.keep_fraction", "must be in (0, 1]")
+        _require(self.min_points >= 0, "calibration.min_points", "must be >= 0")
+
+
+@dataclass
+class MappingConfig:
+    """Lidar odometry and mapping (MC-GICP).
+
+    Attributes:
+        channels: per-point channels used by the registration.
+        voxel_m: voxel size of the downsampling, metres.
+        k: neighbours for the GICP covariances.
+        max_corr_m: largest correspondence distance, metres.
+        max_iterations: registration iterations per scan.
+        map_voxel_m: voxel size of the written map, metres.
+        robust_kernel: none | huber | cauchy on the registration residuals.
+        use_tf_odometry: initial guesses from the log's /tf odometry when it has one.
+    """
+
+    channels: Literal["none", "intensity", "color", "combined"] = "intensity"
+    voxel_m: float = 0.25
+    k: int = 20
+    max_corr_m: float = 1.0
+    max_iterations: int = 30
+    map_voxel_m: float = 0.1
+    robust_kernel: Literal["none", "huber", "cauchy"] = "cauchy"
+    use_tf_odometry: bool = True
+
+    def validate(self) -> None:
+        _require(self.voxel_m > 0, "mapping.voxel_m", "must be > 0")
+        _require(self.k >= 3, "mapping.k", "must be >= 3")
+        _require(self.max_corr_m > 0, "mapping.max_corr_m", "must be > 0")
+        _require(self.max_iterations >= 1, "mapping.max_iterations", "must be >= 1")
+        _require(self.map_voxel_m > 0, "mapping.map_voxel_m", "must be > 0")
+
+
+@dataclass
+class Config:
+    """The whole configuration: one attribute per section (TOML table)."""
+
+    io: IoConfig = field(default_factory=IoConfig)
+    engine: EngineConfig = field(default_factory=EngineConfig)
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+
+    def validate(self) -> None:
+        """Check every section's ranges; raises ConfigError naming the key."""
+        for f in dataclasses.fields(self):
+            section = getattr(self, f.name)
+            check = getattr(section, "validate", None)
+            if check is not None:
+                check()
+
+
+def load_config(
+    path: str | os.PathLike[str] | None = None,
+    env: Mapping[str, str] | None = None,
+    overrides: Mapping[str, Any] | None = None,
+) -> Config:
+    """The effective configuration: defaults < TOML file < environment < overrides.
+
+    Args:
+        path: TOML file, or None for none.
+        env: environment to read ``FLEETCAL_<SECTION>__<KEY>`` from (default ``os.environ``); other
+            ``FLEETCAL_`` variables without ``__`` are ignored.
+        overrides: ``{"section.key": value}``, e.g. from CLI flags; ``None`` values are skipped.
+
+    Raises:
+        ConfigError: unreadable/invalid TOML, an unknown section or key, a value of the wrong type
+            or out of range; the message names the key and where it came from.
+    """
+    data: dict[str, dict[str, Any]] = {}
+    if path is not None:
+        data = _read_toml(Path(path))
+    config = config_from_dict(data, source=str(path) if path is not None else "defaults")
+    environ = os.environ if env is None else env
+    for name, raw in sorted(environ.items()):
+        if not name.startswith(ENV_PREFIX) or "__" not in name[len(ENV_PREFIX):]:
+            continue
+        section, _, key = name[len(ENV_PREFIX):].partition("__")
+        _set(config, section.lower(), key.lower(), raw, source=f"environment variable {name}", from_text=True)
+    for dotted, value in (overrides or {}).items():
+        if value is None:
+            continue
+        section, sep, key = dotted.partition(".")
+        if not sep:
+            raise ConfigError(f"override {dotted!r} must be 'section.key'")
+        _set(config, section, key, value, source="command line", from_text=False)
+    config.validate()
+    return config
+
+
+def config_from_dict(data: Mapping[str, Any], source: str = "dict") -> Config:
+    """A Config from nested ``{section: {key: value}}`` (as TOML gives); validated.
+
+    Raises:
+        ConfigError: unknown section/key or bad value (the message names it and ``source``).
+    """
+    config = Config()
+    for section, table in data.items():
+        if not isinstance(table, Mapping):
+            raise ConfigError(f"{source}: [{section}] must be a table, got {type(table).__name__}")
+        for key, value in table.items():
+            _set(config, section, key, value, source=source, from_text=False)
+    config.validate()
+    return config
+
+
+def config_to_dict(config: Config) -> dict[str, dict[str, Any]]:
+    """Nested ``{section: {key: value}}`` of every setting (None included)."""
+    return {f.name: dataclasses.asdict(getattr(config, f.name)) for f in dataclasses.fields(config)}
+
+
+def to_toml(config: Config) -> str:
+    """TOML text of the config; settings that are None are written as comments (TOML has no null)."""
+    lines: list[str] = ["# fleetcal effective configuration"]
+    for section, table in config_to_dict(config).items():
+        lines.append("")
+        lines.append(f"[{section}]")
+        for key, value in table.items():
+            if value is None:
+                lines.append(f"# {key} = (unset)")
+            else:
+                lines.append(f"{key} = {_toml_value(value)}")
+    return "\n".join(lines) + "\n"
+
+
+def write_toml(config: Config, path: str | os.PathLike[str]) -> Path:
+    """Write ``to_toml(config)`` to ``path`` atomically (temporary file in the folder, then rename)."""
+    final = Path(path)
+    tmp = final.with_name(f".{final.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(to_toml(config), encoding="utf-8")
+        os.replace(tmp, final)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return final
+
+
+def _read_toml(path: Path) -> dict[str, Any]:
+    try:
+        with path.open("rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError as err:
+        raise ConfigError(f"config file not found: {path}") from err
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"{path}: invalid TOML ({err})") from err
+    except OSError as err:
+        raise ConfigError(f"cannot read config file {path}: {err.strerror or err}") from err
+
+
+def _set(config: Config, section: str, key: str, value: Any, *, source: str, from_text: bool) -> None:
+    sections = {f.name for f in dataclasses.fields(config)}
+    if section not in sections:
+        known = ", ".join(sorted(sections))
+        raise ConfigError(f"{source}: unknown config section {section!r} (known: {known})")
+    obj = getattr(config, section)
+    hints = typing.get_type_hints(type(obj))
+    names = [f.name for f in dataclasses.fields(obj)]
+    if key not in names:
+        raise ConfigError(f"{source}: unknown config key {section}.{key} (known: {', '.join(names)})")
+    try:
+        converted = _convert(value, hints[key], from_text)
+    except (TypeError, ValueError) as err:
+        raise ConfigError(f"{source}: bad value {value!r} for {section}.{key}: {err}") from err
+    setattr(obj, key, converted)
+
+
+def _convert(value: Any, tp: Any, from_text: bool) -> Any:
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if origin in (typing.Union, types.UnionType):
+        inner = [a for a in args if a is not type(None)]
+        if from_text and isinstance(value, str) and value.strip().lower() in ("", "none", "null"):
+            return None
+        if value is None:
+            return None
+        if len(inner) != 1:
+            raise TypeError(f"unsupported config type {tp}")
+        return _convert(value, inner[0], from_text)
+    if origin is Literal:
+        text = value.strip() if from_text and isinstance(value, str) else value
+        if text not in args:
+            raise ValueError(f"expected one of {', '.join(map(str, args))}")
+        return text
+    if origin in (list, tuple):
+        item_tp = args[0] if args else str
+        if from_text and isinstance(value, str):
+            items: list[Any] = [v for v in (s.strip() for s in value.split(",")) if v]
+        elif isinstance(value, (list, tuple)):
+            items = list(value)
+        else:
+            raise TypeError(f"expected a list, got {type(value).__name__}")
+        return [_convert(v, item_tp, from_text) for v in items]
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        if from_text and isinstance(value, str):
+            text = value.strip().lower()
+            if text in ("1", "true", "yes", "on"):
+                return True
+            if text in ("0", "false", "no", "off"):
+                return False
+        raise ValueError("expected a boolean (true/false)")
+    if tp is int:
+        if isinstance(value, bool):
+            raise TypeError("expected an integer, got a boolean")
+        if isinstance(value, int):
+            return value
+        if from_text and isinstance(value, str):
+            return int(value.strip().replace("_", ""))
+        raise TypeError(f"expected an integer, got {type(value).__name__}")
+    if tp is float:
+        if isinstance(value, bool):
+            raise TypeError("expected a number, got a boolean")
+        if isinstance(value, (int, float)):
+            number = float(value)
+        elif from_text and isinstance(value, str):
+            number = float(value.strip())
+        else:
+            raise TypeError(f"expected a number, got {type(value).__name__}")
+        if not math.isfinite(number):
+            raise ValueError("expected a finite number")
+        return number
+    if tp is str:
+        if not isinstance(value, str):
+            raise TypeError(f"expected a string, got {type(value).__name__}")
+        return value
+    raise TypeError(f"unsupported config type {tp}")
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, str):
+        escaped = value.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n").replace("\t", "\\t")
+        return f'"{escaped}"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    raise ConfigError(f"cannot write {type(value).__name__} value {value!r} to TOML")
+
+
+def _require(ok: bool, key: str, message: str) -> None:
+    if not ok:
+        raise ConfigError(f"bad value for {key}: {message}")

@@ -1,0 +1,102 @@
+"""Parquet tables of DESIGN.md: exact column names and types, zstd, written atomically."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from stages.sinks.atomic import atomic_path
+
+CALIBRATION_SCHEMA = pa.schema(
+    [
+        ("lidar_topic", pa.string()),
+        ("camera_topic", pa.string()),
+        ("lidar_frame", pa.string()),
+        ("camera_frame", pa.string()),
+        ("metric", pa.string()),
+        ("feature", pa.string()),
+        ("tx_m", pa.float64()),
+        ("ty_m", pa.float64()),
+        ("tz_m", pa.float64()),
+        ("qx", pa.float64()),
+        ("qy", pa.float64()),
+        ("qz", pa.float64()),
+        ("qw", pa.float64()),
+        ("roll_deg", pa.float64()),
+        ("pitch_deg", pa.float64()),
+        ("yaw_deg", pa.float64()),
+        ("score", pa.float64()),
+        ("initial_score", pa.float64()),
+        ("frames_used", pa.int64()),
+        ("runtime_s", pa.float64()),
+    ]
+)
+
+FRAMES_SCHEMA = pa.schema(
+    [
+        ("topic", pa.string()),
+        ("stamp_ns", pa.int64()),
+        ("n_points", pa.int64()),
+        ("width", pa.int32()),
+        ("height", pa.int32()),
+        ("camera_topic", pa.string()),
+        ("score_initial", pa.float64()),
+        ("score_final", pa.float64()),
+    ]
+)
+
+TRAJECTORY_SCHEMA = pa.schema(
+    [
+        ("stamp_ns", pa.int64()),
+        ("tx_m", pa.float64()),
+        ("ty_m", pa.float64()),
+        ("tz_m", pa.float64()),
+        ("qx", pa.float64()),
+        ("qy", pa.float64()),
+        ("qz", pa.float64()),
+        ("qw", pa.float64()),
+        ("fitness", pa.float64()),
+        ("rmse_m", pa.float64()),
+        ("iterations", pa.int32()),
+    ]
+)
+
+MAP_XYZ_FIELDS = [("x_m", pa.float32()), ("y_m", pa.float32()), ("z_m", pa.float32())]
+MAP_CHANNEL_FIELDS = {"intensity": pa.float32(), "r": pa.uint8(), "g": pa.uint8(), "b": pa.uint8()}
+
+
+def write_rows(rows: Sequence[Mapping[str, Any]], schema: pa.Schema, path: str | Path) -> Path:
+    """Write dict rows with exactly ``schema``'s columns (missing keys become null) atomically."""
+    columns = {field.name: [row.get(field.name) for row in rows] for field in schema}
+    table = pa.Table.from_pydict(columns, schema=schema)
+    return write_table(table, path)
+
+
+def write_table(table: pa.Table, path: str | Path) -> Path:
+    """Write a pyarrow table as zstd Parquet via a temporary file renamed on success."""
+    final = Path(path)
+    with atomic_path(final) as tmp:
+        pq.write_table(table, tmp, compression="zstd")
+    return final
+
+
+def map_table(points_xyz: np.ndarray, channels: Mapping[str, np.ndarray]) -> pa.Table:
+    """``map.parquet`` table: float32 x_m, y_m, z_m (map frame) plus intensity / r, g, b when present."""
+    pts = np.asarray(points_xyz, dtype=np.float32).reshape(-1, 3)
+    arrays = [pa.array(pts[:, i]) for i in range(3)]
+    fields = [pa.field(name, dtype) for name, dtype in MAP_XYZ_FIELDS]
+    for name, dtype in MAP_CHANNEL_FIELDS.items():
+        if name in channels:
+            values = np.asarray(channels[name])
+            if dtype == pa.uint8():
+                values = np.clip(np.rint(values), 0, 255).astype(np.uint8)
+            else:
+                values = values.astype(np.float32)
+            arrays.append(pa.array(values))
+            fields.append(pa.field(name, dtype))
+    return pa.Table.from_arrays(arrays, schema=pa.schema(fields))

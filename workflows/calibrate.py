@@ -1,0 +1,422 @@
+"""Recipe: targetless lidar-camera calibration of one log (GOM paper), from paired frames to tables.
+
+Steps: resolve topics -> initial guess (log tf or ``--initial``) -> pick N paired frames spread over
+the log -> per-frame features (lidar feature, image gradients), ego-motion from ``/tf`` -> particle
+swarm + polish (``stages.calibration``) -> ``calibration.parquet``, ``frames.parquet``, report PNGs.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.config import Config
+from pipeline.errors import InputError, ProcessingError, TransformError, UsageError
+from pipeline.frames import CameraFrame, LidarFrame
+from pipeline.pairing import PairingStats, iter_pairs
+from pipeline.progress import Progress
+from pipeline.transforms import (
+    TransformTree,
+    apply,
+    from_xyz_rpy,
+    invert,
+    root_of,
+    rotation_error_deg,
+    to_quat,
+    to_rpy_deg,
+    translation_error_m,
+)
+from readers.base import LogReader
+from readers.frames import load_tf_tree
+from stages.calibration.calibrator import CalibrationConfig as SolverConfig
+from stages.calibration.calibrator import CalibrationFrame, CalibrationResult, calibrate
+from stages.image_gradients import compute_image_gradients, to_grey_u8
+from stages.lidar_features import compute_lidar_feature
+from stages.sinks import report
+from stages.sinks.tables import CALIBRATION_SCHEMA, FRAMES_SCHEMA, write_rows
+
+log = logging.getLogger(__name__)
+
+Mat4 = NDArray[np.float64]
+
+
+@dataclass
+class PairCalibration:
+    """The calibration of one lidar/camera pair (in joint mode, one row per camera of the rig)."""
+
+    lidar_topic: str
+    camera_topic: str
+    lidar_frame: str
+    camera_frame: str
+    result: CalibrationResult
+    T_camera_lidar: Mat4
+    T_camera_lidar_initial: Mat4
+    frames: list[CalibrationFrame] = field(default_factory=list)
+    images: list[NDArray[Any]] = field(default_factory=list)
+    lidar_stamps_ns: list[int] = field(default_factory=list)
+    n_points: list[int] = field(default_factory=list)
+    motion_compensated: bool = False
+
+    def summary(self) -> dict[str, Any]:
+        t, q = to_quat(self.T_camera_lidar)
+        return {
+            "lidar_topic": self.lidar_topic,
+            "camera_topic": self.camera_topic,
+            "lidar_frame": self.lidar_frame,
+            "camera_frame": self.camera_frame,
+            "metric": self.result.metric,
+            "T_camera_lidar": self.T_camera_lidar.tolist(),
+            "translation_m": t.tolist(),
+            "quaternion_xyzw": q.tolist(),
+            "rpy_deg": to_rpy_deg(self.T_camera_lidar).tolist(),
+            "score": self.result.score,
+            "initial_score": self.result.initial_score,
+            "verdict": self.result.verdict,
+            "change_deg": rotation_error_deg(self.T_camera_lidar, self.T_camera_lidar_initial),
+            "change_m": translation_error_m(self.T_camera_lidar, self.T_camera_lidar_initial),
+            "rotation_std_deg": _finite_or_none(self.result.rotation_std_deg),
+            "translation_std_m": _finite_or_none(self.result.translation_std_m),
+            "frames_used": self.result.frames_used,
+            "runtime_s": self.result.runtime_s,
+            "motion_compensated": self.motion_compensated,
+        }
+
+
+def _finite_or_none(value: float) -> float | None:
+    return float(value) if np.isfinite(value) else None
+
+
+def parse_initial(text: str) -> Mat4:
+    """``"x y z roll pitch yaw"`` (metres, degrees, xyz-extrinsic) -> ``T_camera_lidar``."""
+    try:
+        values = [float(v) for v in text.replace(",", " ").split()]
+    except ValueError as err:
+        raise UsageError(f"--initial must be 6 numbers 'x y z roll pitch yaw', got {text!r}") from err
+    if len(values) != 6 or not np.all(np.isfinite(values)):
+        raise UsageError(f"--initial must be 6 finite numbers 'x y z roll pitch yaw', got {text!r}")
+    return from_xyz_rpy(*values)
+
+
+def blur_sigma_for(width: int, configured: float) -> float:
+    """Gaussian blur before the Sobel: ``configured`` px, or (0) scaled with the image width."""
+    if configured > 0:
+        return configured
+    return width / 620.0
+
+
+def solver_config(config: Config) -> SolverConfig:
+    c = config.calibration
+    return SolverConfig(
+        metric=c.metric,
+        search_deg=c.search_deg,
+        search_m=c.search_m,
+        n_particles=c.particles,
+        max_iterations=c.iterations,
+        seed=c.seed,
+        repeats=c.repeats,
+        keep_fraction=c.keep_fraction,
+        sphere_k=c.k_neighbours,
+        estimate_focal=c.estimate_focal,
+    )
+
+
+def _motion(tree: TransformTree | None, lidar_frame: str, scan_ns: int, camera_ns: int) -> Mat4 | None:
+    """``T_lidar(camera stamp)_lidar(scan stamp)`` from the tf tree's odometry, or None without it."""
+    if tree is None or scan_ns == camera_ns:
+        return None
+    world = root_of(tree, lidar_frame)
+    if world == lidar_frame or tree.is_static_path(world, lidar_frame):
+        return None
+    try:
+        T_world_scan = tree.lookup(world, lidar_frame, scan_ns)
+        T_world_cam = tree.lookup(world, lidar_frame, camera_ns)
+    except TransformError as err:
+        log.warning("no ego-motion compensation for the scan at %d: %s", scan_ns, err)
+        return None
+    return invert(T_world_cam) @ T_world_scan
+
+
+def make_frame(
+    lidar: LidarFrame,
+    camera: CameraFrame,
+    feature_kind: str,
+    blur_sigma_px: float,
+    k: int,
+    T_lidar_motion: Mat4 | None,
+) -> CalibrationFrame:
+    """Per-frame stage: lidar feature and image gradients of one pair."""
+    if camera.camera is None:
+        raise InputError(f"camera {camera.topic} has no CameraInfo in the log")
+    points = np.asarray(lidar.points_xyz, dtype=np.float64)
+    if points.shape[0] == 0:
+        raise InputError(f"lidar scan at {lidar.stamp_ns} has no valid points")
+    feature = compute_lidar_feature(points, feature_kind, intensity=lidar.channel("intensity"), k=k)  # type: ignore[arg-type]
+    keep = np.isfinite(feature)
+    gradients = compute_image_gradients(
+        camera.image, blur_sigma_px=blur_sigma_for(camera.width, blur_sigma_px)
+    )
+    grey = to_grey_u8(camera.image).astype(np.float32) / 255.0
+    return CalibrationFrame(
+        points_xyz=points[keep],
+        feature=feature[keep],
+        camera=camera.camera,
+        gradients=gradients,
+        intensity=grey,
+        T_lidar_motion=T_lidar_motion,
+        stamp_ns=camera.stamp_ns,
+        label=camera.topic,
+    )
+
+
+@dataclass
+class _Collected:
+    frames: list[CalibrationFrame]
+    images: list[NDArray[Any]]
+    lidar_stamps: list[int]
+    n_points: list[int]
+    lidar_frame: str
+    camera_frame: str
+    compensated: bool
+
+
+def collect_frames(
+    reader: LogReader,
+    lidar_topic: str,
+    camera_topic: str,
+    config: Config,
+    tree: TransformTree | None,
+    progress: Progress | None = None,
+) -> _Collected:
+    """Decode N pairs spread over the log and run the per-frame stages on them."""
+    c = config.calibration
+    stats = PairingStats()
+    out = _Collected([], [], [], [], "", "", False)
+    for lidar, camera in iter_pairs(
+        reader, lidar_topic, camera_topic, config.io.pairing_tolerance_ns, max_pairs=c.frames, stats=stats
+    ):
+        out.lidar_frame, out.camera_frame = lidar.frame_id.lstrip("/"), camera.frame_id.lstrip("/")
+        if lidar.n_points < c.min_points:
+            log.warning("skipping scan at %d: %d points", lidar.stamp_ns, lidar.n_points)
+            continue
+        motion = (
+            _motion(tree, out.lidar_frame, lidar.stamp_ns, camera.stamp_ns) if c.motion_compensation else None
+        )
+        out.compensated |= motion is not None
+        out.frames.append(make_frame(lidar, camera, c.feature, c.blur_sigma_px, c.k_neighbours, motion))
+        out.images.append(camera.image)
+        out.lidar_stamps.append(lidar.stamp_ns)
+        out.n_points.append(lidar.n_points)
+        if progress is not None:
+            progress.update()
+    if not out.frames:
+        if stats.lidar_frames == 0 or stats.camera_frames == 0:
+            raise InputError(f"no messages on {lidar_topic if stats.lidar_frames == 0 else camera_topic}")
+        raise InputError(
+            f"no lidar scan on {lidar_topic} has an image on {camera_topic} within "
+            f"{config.io.pairing_tolerance_ns / 1e6:.0f} ms ({stats.lidar_frames} scans, "
+            f"{stats.camera_frames} images)"
+        )
+    return out
+
+
+def initial_guess(
+    tree: TransformTree | None, lidar_frame: str, camera_frame: str, initial: str | None
+) -> Mat4:
+    """``--initial`` when given, else the log's tf (lidar -> camera); a clear error without either."""
+    if initial:
+        return parse_initial(initial)
+    if tree is None or not tree.can_lookup(camera_frame, lidar_frame):
+        raise InputError(
+            f"no initial guess: the log's tf has no path from {lidar_frame!r} to {camera_frame!r}; "
+            'give one with --initial "x y z roll pitch yaw"'
+        )
+    return tree.lookup(
+        camera_frame, lidar_frame, None if tree.is_static_path(camera_frame, lidar_frame) else 0
+    )
+
+
+def run_calibration(
+    reader: LogReader,
+    lidar_topic: str,
+    camera_topics: list[str],
+    config: Config,
+    initial: str | None = None,
+    joint: bool = False,
+    quiet: bool = False,
+) -> list[PairCalibration]:
+    """Calibrate every camera against the lidar (pairwise) or the whole rig at once (``joint``)."""
+    try:
+        tree: TransformTree | None = load_tf_tree(reader)
+    except InputError as err:
+        log.warning("ignoring the log's tf: %s", err)
+        tree = None
+    solver = solver_config(config)
+    collected: dict[str, _Collected] = {}
+    with Progress(
+        total=config.calibration.frames * len(camera_topics), desc="calibration frames", quiet=quiet
+    ) as progress:
+        for topic in camera_topics:
+            collected[topic] = collect_frames(reader, lidar_topic, topic, config, tree, progress)
+    results: list[PairCalibration] = []
+    if joint and len(camera_topics) > 1:
+        ref = camera_topics[0]
+        lidar_frame, ref_frame = collected[ref].lidar_frame, collected[ref].camera_frame
+        T_init = initial_guess(tree, lidar_frame, ref_frame, initial)
+        frames: list[CalibrationFrame] = []
+        T_cam_ref: dict[str, Mat4] = {}
+        for topic in camera_topics:
+            col = collected[topic]
+            if tree is None or not tree.can_lookup(col.camera_frame, ref_frame):
+                raise InputError(
+                    f"--joint needs the tf between cameras {ref_frame!r} and {col.camera_frame!r}"
+                )
+            T_cam_ref[topic] = tree.lookup(col.camera_frame, ref_frame)
+            for f in col.frames:
+                f.T_camera_camera0 = T_cam_ref[topic]
+                frames.append(f)
+        result = calibrate(frames, T_init, solver)
+        for topic in camera_topics:
+            col = collected[topic]
+            results.append(
+                PairCalibration(
+                    lidar_topic,
+                    topic,
+                    lidar_frame,
+                    col.camera_frame,
+                    result,
+                    T_cam_ref[topic] @ result.T_camera_lidar,
+                    T_cam_ref[topic] @ T_init,
+                    col.frames,
+                    col.images,
+                    col.lidar_stamps,
+                    col.n_points,
+                    col.compensated,
+                )  # fmt: skip
+            )
+        return results
+    for topic in camera_topics:
+        col = collected[topic]
+        T_init = initial_guess(tree, col.lidar_frame, col.camera_frame, initial)
+        _check_visible(col.frames, T_init, topic)
+        result = calibrate(col.frames, T_init, solver)
+        results.append(
+            PairCalibration(
+                lidar_topic,
+                topic,
+                col.lidar_frame,
+                col.camera_frame,
+                result,
+                result.T_camera_lidar,
+                T_init,
+                col.frames,
+                col.images,
+                col.lidar_stamps,
+                col.n_points,
+                col.compensated,
+            )  # fmt: skip
+        )
+    return results
+
+
+def _check_visible(frames: list[CalibrationFrame], T_camera_lidar: Mat4, topic: str) -> None:
+    """Drop nothing, but fail clearly when the camera sees no lidar point at the initial guess."""
+    seen = 0
+    for f in frames:
+        _, valid = f.camera.project(apply(T_camera_lidar, f.points_xyz))
+        seen += int(valid.sum())
+    if seen == 0:
+        raise ProcessingError(
+            f"camera {topic} sees no lidar points at the initial guess; check the tf or --initial"
+        )
+
+
+def calibration_rows(pairs: list[PairCalibration], feature: str) -> list[dict[str, Any]]:
+    rows = []
+    for p in pairs:
+        t, q = to_quat(p.T_camera_lidar)
+        roll, pitch, yaw = to_rpy_deg(p.T_camera_lidar)
+        rows.append({
+            "lidar_topic": p.lidar_topic, "camera_topic": p.camera_topic, "lidar_frame": p.lidar_frame,
+            "camera_frame": p.camera_frame, "metric": p.result.metric, "feature": feature,
+            "tx_m": t[0], "ty_m": t[1], "tz_m": t[2], "qx": q[0], "qy": q[1], "qz": q[2], "qw": q[3],
+            "roll_deg": roll, "pitch_deg": pitch, "yaw_deg": yaw, "score": p.result.score,
+            "initial_score": p.result.initial_score, "frames_used": p.result.frames_used,
+            "runtime_s": p.result.runtime_s,
+        })  # fmt: skip
+    return rows
+
+
+def frame_rows(pairs: list[PairCalibration]) -> list[dict[str, Any]]:
+    """One row per lidar scan and per camera image used (scores of the image's pair)."""
+    rows: list[dict[str, Any]] = []
+    seen_scans: set[tuple[str, int]] = set()
+    for p in pairs:
+        offset = 0
+        if len(pairs) > 1 and p.result.frames_used > len(p.frames):
+            offset = sum(len(q.frames) for q in pairs[: pairs.index(p)])
+        for i, f in enumerate(p.frames):
+            key = (p.lidar_topic, p.lidar_stamps_ns[i])
+            if key not in seen_scans:
+                seen_scans.add(key)
+                rows.append(
+                    {"topic": p.lidar_topic, "stamp_ns": p.lidar_stamps_ns[i], "n_points": p.n_points[i]}
+                )
+            j = offset + i
+            rows.append({
+                "topic": p.camera_topic, "stamp_ns": f.stamp_ns, "width": f.camera.width, "height": f.camera.height,
+                "camera_topic": p.camera_topic,
+                "score_initial": float(p.result.frame_initial_scores[j]),
+                "score_final": float(p.result.frame_scores[j]),
+            })  # fmt: skip
+    return rows
+
+
+def write_calibration(pairs: list[PairCalibration], config: Config, out_dir: Path) -> list[Path]:
+    """``calibration.parquet``, ``frames.parquet`` and the report PNGs."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = [
+        write_rows(calibration_rows(pairs, config.calibration.feature), CALIBRATION_SCHEMA,
+                   out_dir / "calibration.parquet"),
+        write_rows(frame_rows(pairs), FRAMES_SCHEMA, out_dir / "frames.parquet"),
+    ]  # fmt: skip
+    report_dir = out_dir / "report"
+    for p in pairs:
+        if not p.frames:
+            continue
+        name = p.camera_topic.strip("/").replace("/", "_")
+        f, image = p.frames[0], p.images[0]
+        for label, T in (("before", p.T_camera_lidar_initial), ("after", p.T_camera_lidar)):
+            points = f.points_xyz if f.T_lidar_motion is None else apply(f.T_lidar_motion, f.points_xyz)
+            written.append(report.write_overlay(image, f.camera, apply(T, points),
+                                                report_dir / f"overlay_{label}_{name}.png"))  # fmt: skip
+    return written
+
+
+def landscape(pair: PairCalibration, config: Config, out_dir: Path, steps: int = 21) -> Path | None:
+    """Score slices around the optimum (rotation about camera x/y, translation along x/y) as one PNG."""
+    from stages.calibration.calibrator import CalibrationProblem
+    from stages.calibration.landscape import score_landscape
+
+    if not pair.frames:
+        return None
+    problem = CalibrationProblem(pair.frames, pair.result.T_camera_lidar, solver_config(config))
+    centre = problem.x_of(pair.result.T_camera_lidar)
+    if problem.dim > centre.size:
+        centre = np.append(centre, pair.result.focal_scale)
+    rotation = score_landscape(problem, centre, axes=(0, 1), half_width=(2.0, 2.0), steps=steps)
+    translation = score_landscape(problem, centre, axes=(3, 4), half_width=(0.2, 0.2), steps=steps)
+    grids = {"rot x/y +-2 deg": rotation.scores, "trans x/y +-0.2 m": translation.scores}
+    name = pair.camera_topic.strip("/").replace("/", "_")
+    return report.write_landscape(grids, out_dir / "report" / f"landscape_{name}.png")
+
+
+def timed(fn: Any, *args: Any, **kwargs: Any) -> tuple[Any, float]:
+    start = time.perf_counter()
+    value = fn(*args, **kwargs)
+    return value, time.perf_counter() - start

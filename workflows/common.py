@@ -1,0 +1,60 @@
+"""Helpers shared by the command modules: config from flags, opening logs, output folders."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from pipeline.config import Config, load_config, write_toml
+from pipeline.errors import InputError, UsageError
+from readers.base import LogReader
+from readers.open import open_log, truncation_of
+
+
+def config_from_args(args: argparse.Namespace, overrides: dict[str, Any]) -> Config:
+    """Defaults < ``--config`` TOML < ``FLEETCAL_*`` environment < command-line flags."""
+    engine = {
+        "engine.scheduler": getattr(args, "scheduler", None),
+        "engine.workers": getattr(args, "workers", None),
+    }
+    return load_config(getattr(args, "config", None), overrides={**engine, **overrides})
+
+
+def open_logs(paths: list[str], config: Config, quiet: bool = False) -> LogReader:
+    """Open the log(s); a truncated log is read as far as it is intact only with io.allow_truncated."""
+    reader = open_log(paths if len(paths) > 1 else paths[0], allow_truncated=config.io.allow_truncated)
+    info = truncation_of(reader)
+    if info is not None and not quiet:
+        sys.stderr.write(
+            f"warning: log is truncated: recovered {info.recovered_messages} messages, "
+            f"lost {info.lost_bytes} bytes\n"
+        )
+    return reader
+
+
+def prepare_out_dir(out: str | None) -> Path:
+    if not out:
+        raise UsageError("--out DIR is required")
+    path = Path(out)
+    if path.exists() and not path.is_dir():
+        raise InputError(f"--out {out} exists and is not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise InputError(f"cannot create output folder {out}: {err.strerror}") from err
+    return path
+
+
+def write_config(config: Config, out_dir: Path) -> Path:
+    return write_toml(config, out_dir / "config.toml")
+
+
+def table(rows: list[list[str]], header: list[str]) -> str:
+    """Plain-text table with aligned columns."""
+    widths = [max(len(str(r[i])) for r in [header, *rows]) for i in range(len(header))]
+    lines = ["  ".join(str(h).ljust(w) for h, w in zip(header, widths, strict=True))]
+    lines.append("  ".join("-" * w for w in widths))
+    lines.extend("  ".join(str(c).ljust(w) for c, w in zip(r, widths, strict=True)) for r in rows)
+    return "\n".join(lines)

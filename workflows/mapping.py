@@ -1,0 +1,184 @@
+"""Recipe: lidar odometry and a voxel map with MC-GICP over one lidar topic.
+
+Per-frame work (downsampling, covariances, descriptors) runs on the dask engine in log order;
+the odometry chain (each scan against the previous one) and the voxel map are the aggregation.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.config import Config
+from pipeline.engine import Engine
+from pipeline.errors import ConfigError, InputError, TransformError
+from pipeline.frames import LidarFrame
+from pipeline.transforms import TransformTree, root_of, to_quat, translation_error_m
+from readers.base import LogReader
+from readers.frames import load_tf_tree
+from stages.registration.gicp import RegistrationConfig
+from stages.registration.odometry import OdometryStep, VoxelMap, run_odometry
+from stages.registration.pointset import PointSet, pointset_from_frame
+from stages.sinks import report
+from stages.sinks.tables import TRAJECTORY_SCHEMA, map_table, write_rows, write_table
+
+log = logging.getLogger(__name__)
+
+CHANNEL_MODES = ("none", "intensity", "color", "combined")
+
+
+@dataclass
+class MappingOutcome:
+    """Trajectory (one step per scan) and the voxel map, map frame = first scan's lidar frame."""
+
+    lidar_topic: str
+    lidar_frame: str
+    channels: str
+    steps: list[OdometryStep]
+    map_points_xyz: NDArray[np.float64]
+    map_channels: dict[str, NDArray[Any]]
+    scans_skipped: int
+    used_tf_odometry: bool
+
+    @property
+    def path_length_m(self) -> float:
+        return float(sum(translation_error_m(a.T_map_lidar, b.T_map_lidar)
+                         for a, b in zip(self.steps, self.steps[1:], strict=False)))  # fmt: skip
+
+    def summary(self) -> dict[str, Any]:
+        fitness = [s.fitness for s in self.steps[1:]]
+        failed = [s.index for s in self.steps[1:] if not s.converged or s.fitness < 0.3]
+        return {
+            "lidar_topic": self.lidar_topic,
+            "lidar_frame": self.lidar_frame,
+            "channels": self.channels,
+            "scans": len(self.steps),
+            "scans_skipped": self.scans_skipped,
+            "path_length_m": self.path_length_m,
+            "mean_fitness": float(np.mean(fitness)) if fitness else None,
+            "failed_pairs": failed,
+            "degenerate_pairs": [s.index for s in self.steps[1:] if s.degenerate],
+            "map_points": int(self.map_points_xyz.shape[0]),
+            "used_tf_odometry": self.used_tf_odometry,
+        }
+
+
+def registration_config(config: Config) -> RegistrationConfig:
+    """RegistrationConfig from the ``[mapping]`` section (channels ``none`` = plain GICP)."""
+    m = config.mapping
+    if m.channels not in CHANNEL_MODES:
+        raise ConfigError(f"unknown channels {m.channels!r}; expected one of {', '.join(CHANNEL_MODES)}")
+    return RegistrationConfig(
+        method="gicp" if m.channels == "none" else "mcgicp",
+        channels=m.channels,
+        voxel_size_m=m.voxel_m,
+        k_neighbors=m.k,
+        max_correspondence_distance_m=m.max_corr_m,
+        max_iterations=m.max_iterations,
+        robust_kernel=m.robust_kernel,
+        workers=1,
+    )
+
+
+def prepare_scan(frame: LidarFrame, config: RegistrationConfig) -> PointSet:
+    """Per-frame stage: downsampled points, covariances and descriptors of one scan."""
+    needed = {"intensity": ("intensity",), "color": ("r", "g", "b"), "combined": ("intensity", "r", "g", "b")}
+    missing = [c for c in needed.get(config.channels, ()) if c not in frame.channels]
+    if missing:
+        raise InputError(
+            f"scan at {frame.stamp_ns} has no {', '.join(missing)} channel for --channels {config.channels}"
+        )
+    return pointset_from_frame(frame, config)
+
+
+def tf_odometry(
+    tree: TransformTree | None, lidar_frame: str, stamps_ns: Sequence[int]
+) -> list[NDArray[np.float64]] | None:
+    """``T_odom_lidar`` per scan from the log's dynamic tf, or None when the log has no odometry."""
+    if tree is None or lidar_frame not in tree.frames:
+        return None
+    world = root_of(tree, lidar_frame)
+    if world == lidar_frame or tree.is_static_path(world, lidar_frame):
+        return None
+    try:
+        return [tree.lookup(world, lidar_frame, s) for s in stamps_ns]
+    except TransformError as err:
+        log.warning("not using /tf odometry: %s", err)
+        return None
+
+
+def map_pointsets(
+    pointsets: Iterable[PointSet],
+    config: Config,
+    tree: TransformTree | None = None,
+) -> tuple[list[OdometryStep], VoxelMap, bool]:
+    """Odometry + voxel map over prepared scans (in time order)."""
+    scans = list(pointsets)
+    reg = registration_config(config)
+    lidar_frame = scans[0].frame_id.lstrip("/") if scans else ""
+    initial = tf_odometry(tree, lidar_frame, [s.stamp_ns for s in scans]) if config.mapping.use_tf_odometry else None
+    voxel_map = VoxelMap(config.mapping.map_voxel_m)
+    steps = run_odometry(scans, reg, initial_motion=initial, voxel_map=voxel_map)
+    return steps, voxel_map, initial is not None
+
+
+def run_mapping(
+    paths: list[str],
+    reader: LogReader,
+    lidar_topic: str,
+    config: Config,
+    engine: Engine,
+) -> MappingOutcome:
+    """Prepare every scan on the engine (log order), then chain the odometry and build the map."""
+    reg = registration_config(config)
+    stage = functools.partial(prepare_scan, config=reg)
+    pointsets = list(
+        engine.map_frames(paths, lidar_topic, stage, batch_size=config.engine.batch_size, ordered=True,
+                          allow_truncated=config.io.allow_truncated, desc="scans")
+    )  # fmt: skip
+    skipped = engine.stats.frames_skipped
+    if len(pointsets) < 2:
+        reasons = ", ".join(engine.stats.skip_examples[:2])
+        raise InputError(f"need at least 2 usable scans on {lidar_topic} to map, got {len(pointsets)}"
+                         + (f" ({reasons})" if reasons else ""))  # fmt: skip
+    pointsets.sort(key=lambda p: p.stamp_ns)
+    try:
+        tree: TransformTree | None = load_tf_tree(reader)
+    except InputError:
+        tree = None
+    steps, voxel_map, used_tf = map_pointsets(pointsets, config, tree)
+    return MappingOutcome(
+        lidar_topic, pointsets[0].frame_id.lstrip("/"), config.mapping.channels, steps,
+        voxel_map.points(), voxel_map.channels(), skipped, used_tf,
+    )  # fmt: skip
+
+
+def trajectory_rows(steps: Sequence[OdometryStep]) -> list[dict[str, Any]]:
+    rows = []
+    for s in steps:
+        t, q = to_quat(s.T_map_lidar)
+        rows.append({"stamp_ns": s.stamp_ns, "tx_m": t[0], "ty_m": t[1], "tz_m": t[2], "qx": q[0], "qy": q[1],
+                     "qz": q[2], "qw": q[3], "fitness": s.fitness, "rmse_m": s.rmse_m,
+                     "iterations": s.iterations})  # fmt: skip
+    return rows
+
+
+def write_mapping(outcome: MappingOutcome, out_dir: Path, with_report: bool = True) -> list[Path]:
+    """``trajectory.parquet``, ``map.parquet`` and ``report/map_top.png``."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = [
+        write_rows(trajectory_rows(outcome.steps), TRAJECTORY_SCHEMA, out_dir / "trajectory.parquet"),
+        write_table(map_table(outcome.map_points_xyz, outcome.map_channels), out_dir / "map.parquet"),
+    ]
+    if with_report:
+        trajectory = np.array([s.T_map_lidar[:3, 3] for s in outcome.steps])
+        written.append(report.write_map_top(outcome.map_points_xyz, out_dir / "report" / "map_top.png",
+                                            outcome.map_channels.get("intensity"), trajectory))  # fmt: skip
+    return written

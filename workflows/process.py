@@ -1,0 +1,254 @@
+"""Recipe: the nightly job for one log — calibrate every lidar/camera pair, colourise the scans from
+the calibrated cameras, map with MC-GICP, write every table, the report, the effective config and
+the write-back log. ``result.json`` is written last: its presence means the output folder is complete.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.config import Config, write_toml
+from pipeline.engine import Engine
+from pipeline.errors import InputError
+from pipeline.frames import LidarFrame
+from pipeline.pairing import raw_header_stamp_ns
+from pipeline.transforms import apply
+from readers.frames import CameraInfoTracker, camera_info_topic_for, decode_camera_image
+from readers.open import open_log
+from stages.colorize import colorize
+from stages.registration.pointset import PointSet
+from stages.sinks.atomic import atomic_path
+from stages.sinks.report import jpeg_overlay
+from stages.sinks.writeback import CalibratedPose, write_back, writeback_path
+from workflows import calibrate as calib
+from workflows import mapping
+from workflows.sensors import resolve_cameras, resolve_lidar
+
+log = logging.getLogger(__name__)
+
+RESULT_FILE = "result.json"
+
+
+@dataclass
+class ProcessResult:
+    """What ``process_log`` produced (also stored as ``result.json`` in the output folder)."""
+
+    log_paths: list[str]
+    out_dir: Path
+    runtime_s: float
+    stage_times_s: dict[str, float]
+    calibrations: list[dict[str, Any]]
+    mapping: dict[str, Any] | None
+    writeback_path: Path | None
+    log_start_ns: int
+    warnings: list[str] = field(default_factory=list)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "log_paths": self.log_paths, "out_dir": str(self.out_dir), "runtime_s": self.runtime_s,
+            "stage_times_s": self.stage_times_s, "calibrations": self.calibrations, "mapping": self.mapping,
+            "writeback_path": str(self.writeback_path) if self.writeback_path else None,
+            "log_start_ns": self.log_start_ns, "warnings": self.warnings,
+        }  # fmt: skip
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> ProcessResult:
+        return cls(
+            log_paths=list(data["log_paths"]), out_dir=Path(data["out_dir"]), runtime_s=float(data["runtime_s"]),
+            stage_times_s=dict(data["stage_times_s"]), calibrations=list(data["calibrations"]),
+            mapping=data.get("mapping"), log_start_ns=int(data["log_start_ns"]),
+            writeback_path=Path(data["writeback_path"]) if data.get("writeback_path") else None,
+            warnings=list(data.get("warnings", [])),
+        )  # fmt: skip
+
+
+def is_complete(out_dir: Path) -> bool:
+    """True when ``out_dir`` holds a finished ``process_log`` output (its ``result.json``)."""
+    return (Path(out_dir) / RESULT_FILE).is_file()
+
+
+def load_result(out_dir: Path) -> ProcessResult:
+    return ProcessResult.from_json(json.loads((Path(out_dir) / RESULT_FILE).read_text(encoding="utf-8")))
+
+
+@dataclass(frozen=True)
+class ColorSource:
+    """Calibrated cameras to colour lidar scans from (read by each worker from the log itself)."""
+
+    paths: tuple[str, ...]
+    cameras: tuple[tuple[str, tuple[tuple[float, ...], ...]], ...]
+    tolerance_ns: int
+    allow_truncated: bool = False
+
+
+@functools.lru_cache(maxsize=4)
+def _worker_reader(paths: tuple[str, ...], allow_truncated: bool) -> Any:
+    return open_log(list(paths) if len(paths) > 1 else paths[0], allow_truncated=allow_truncated)
+
+
+def _nearest_image(reader: Any, topic: str, stamp_ns: int, tolerance_ns: int) -> Any:
+    """The decoded image of ``topic`` nearest ``stamp_ns`` (header stamps) within the tolerance, or None."""
+    margin = tolerance_ns + 200_000_000
+    best, best_gap = None, tolerance_ns + 1
+    for raw in reader.messages(topics=[topic], start_ns=stamp_ns - margin, end_ns=stamp_ns + margin):
+        gap = abs(raw_header_stamp_ns(raw, reader) - stamp_ns)
+        if gap < best_gap:
+            best, best_gap = raw, gap
+    if best is None:
+        return None
+    frame = decode_camera_image(reader.topics[topic].msgtype, reader.deserialize(best), topic, best.log_time_ns)
+    frame.camera = CameraInfoTracker(reader, camera_info_topic_for(topic, reader.topics)).model
+    return frame
+
+
+def colorize_scan(frame: LidarFrame, source: ColorSource) -> LidarFrame:
+    """Per-frame stage: r, g, b channels from the calibrated cameras; points no camera sees get the
+    mean colour of the seen ones (so they add no colour gradient in MC-GICP)."""
+    reader = _worker_reader(source.paths, source.allow_truncated)
+    views = []
+    for topic, T_rows in source.cameras:
+        image = _nearest_image(reader, topic, frame.stamp_ns, source.tolerance_ns)
+        if image is not None and image.camera is not None:
+            views.append((image.image, image.camera, np.array(T_rows)))
+    points = np.asarray(frame.points_xyz, dtype=np.float64)
+    rgb, seen = colorize(points, views) if views else (np.zeros((points.shape[0], 3), np.uint8),
+                                                        np.zeros(points.shape[0], bool))  # fmt: skip
+    rgb = rgb.astype(np.float32)
+    if seen.any():
+        rgb[~seen] = rgb[seen].mean(axis=0)
+    else:
+        rgb[:] = 128.0
+    channels = dict(frame.channels)
+    channels.update(r=rgb[:, 0], g=rgb[:, 1], b=rgb[:, 2])
+    frame.channels = channels
+    return frame
+
+
+def prepare_colored_scan(frame: LidarFrame, source: ColorSource | None, config: Any) -> PointSet:
+    """Per-frame stage of ``process``: colourise (when cameras are given), then prepare for MC-GICP."""
+    if source is not None:
+        frame = colorize_scan(frame, source)
+    return mapping.prepare_scan(frame, config)
+
+
+def _mapping_channels(config: Config, have_color: bool, have_intensity: bool) -> str:
+    wanted = config.mapping.channels
+    if wanted in ("color", "combined") and not have_color:
+        wanted = "intensity" if have_intensity else "none"
+    if wanted in ("intensity", "combined") and not have_intensity:
+        wanted = "color" if have_color else "none"
+    return wanted
+
+
+def process_log(
+    paths: Sequence[str],
+    out_dir: Path,
+    config: Config,
+    *,
+    workers: int | None = 0,
+    scheduler: str | None = None,
+    quiet: bool = True,
+) -> ProcessResult:
+    """Calibrate, colourise, map and write back one log into ``out_dir``.
+
+    Raises:
+        InputError / ProcessingError: the log cannot be read, has no lidar or camera, or no pair.
+    """
+    start = time.perf_counter()
+    times: dict[str, float] = {}
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stale = out_dir / RESULT_FILE
+    if stale.exists():
+        stale.unlink()
+    paths = [str(p) for p in paths]
+    warnings: list[str] = []
+    reader = open_log(paths if len(paths) > 1 else paths[0], allow_truncated=config.io.allow_truncated)
+    with reader:
+        lidar_topic = resolve_lidar(reader, None)
+        cameras = resolve_cameras(reader, None)
+        t0 = time.perf_counter()
+        pairs = calib.run_calibration(reader, lidar_topic, cameras, config, quiet=quiet)
+        times["calibration"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        lidar_info = reader.topics[lidar_topic]
+        source = ColorSource(
+            tuple(paths), tuple((p.camera_topic, tuple(map(tuple, p.T_camera_lidar.tolist()))) for p in pairs),
+            config.io.pairing_tolerance_ns, config.io.allow_truncated,
+        )  # fmt: skip
+        map_config = Config(**{**config.__dict__})
+        map_config.mapping = type(config.mapping)(**{**config.mapping.__dict__})
+        first = next(iter(reader.messages(topics=[lidar_topic])), None)
+        has_intensity = first is not None and any(
+            f.name == "intensity" for f in reader.deserialize(first).fields)
+        map_config.mapping.channels = _mapping_channels(config, True, has_intensity)  # type: ignore[assignment]
+        reg = mapping.registration_config(map_config)
+        stage = functools.partial(prepare_colored_scan, source=source if "color" in reg.channels or
+                                  reg.channels == "combined" else None, config=reg)  # fmt: skip
+        outcome = None
+        if lidar_info.count >= 2:
+            with Engine(scheduler=scheduler, workers=workers, quiet=quiet) as engine:
+                pointsets = list(engine.map_frames(paths, lidar_topic, stage, batch_size=config.engine.batch_size,
+                                                   ordered=True, allow_truncated=config.io.allow_truncated,
+                                                   desc="scans"))  # fmt: skip
+            if len(pointsets) >= 2:
+                from readers.frames import load_tf_tree
+
+                try:
+                    tree = load_tf_tree(reader)
+                except InputError:
+                    tree = None
+                steps, voxel_map, used_tf = mapping.map_pointsets(pointsets, map_config, tree)
+                outcome = mapping.MappingOutcome(
+                    lidar_topic, pointsets[0].frame_id.lstrip("/"), map_config.mapping.channels, steps,
+                    voxel_map.points(), voxel_map.channels(), engine.stats.frames_skipped, used_tf,
+                )  # fmt: skip
+        if outcome is None:
+            warnings.append(f"mapping skipped: fewer than 2 usable scans on {lidar_topic}")
+        times["mapping"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        write_toml(config, out_dir / "config.toml")
+        calib.write_calibration(pairs, config, out_dir)
+        if outcome is not None:
+            mapping.write_mapping(outcome, out_dir)
+        times["tables_report"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        overlays: dict[str, list[tuple[int, bytes]]] = {}
+        for p in pairs:
+            if p.frames:
+                f = p.frames[0]
+                pts = f.points_xyz if f.T_lidar_motion is None else apply(f.T_lidar_motion, f.points_xyz)
+                overlays[p.camera_topic] = [(f.stamp_ns, jpeg_overlay(p.images[0], f.camera,
+                                                                      apply(p.T_camera_lidar, pts)))]  # fmt: skip
+        target = writeback_path(paths[0], out_dir)
+        write_back(
+            reader, target,
+            calibrations=[CalibratedPose(p.lidar_frame, p.camera_frame, p.T_camera_lidar) for p in pairs],
+            map_points_xyz=outcome.map_points_xyz if outcome else None,
+            map_channels=outcome.map_channels if outcome else None,
+            trajectory_stamps_ns=[s.stamp_ns for s in outcome.steps] if outcome else (),
+            trajectory_T_map_lidar=[s.T_map_lidar for s in outcome.steps] if outcome else (),
+            overlays=overlays,
+        )  # fmt: skip
+        times["writeback"] = time.perf_counter() - t0
+        log_start = reader.start_ns
+    result = ProcessResult(
+        log_paths=paths, out_dir=out_dir, runtime_s=time.perf_counter() - start, stage_times_s=times,
+        calibrations=[p.summary() for p in pairs], mapping=outcome.summary() if outcome else None,
+        writeback_path=target, log_start_ns=int(log_start), warnings=warnings,
+    )  # fmt: skip
+    with atomic_path(out_dir / RESULT_FILE) as tmp:
+        Path(tmp).write_text(json.dumps(result.to_json(), indent=1, default=float), encoding="utf-8")
+    return result
