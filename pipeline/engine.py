@@ -1,0 +1,558 @@
+"""Run a per-frame stage over a log's topic on dask, in batches, streaming results as they finish.
+
+The client reads only the log times of the topic's messages (no decoding) and cuts them into time
+ranges of ``batch_size`` messages. Each task is ``(log paths, topic, start_ns, end_ns, stage_fn)``:
+the worker opens the log itself, decodes the frames of its range, runs the stage on each and returns
+only the stage results, so frames never travel through the client. At most ``max_in_flight`` tasks
+are submitted at a time (a sliding window), which bounds memory on long logs.
+
+Frames whose stage raises ``InputError`` (no valid points, blank image...) or that cannot be decoded
+are skipped and counted in ``Engine.stats``. Tasks are retried (``retries``) and distributed
+reschedules the tasks of a worker that dies, so a lost worker does not fail the run.
+
+``Engine(workers=0)`` runs the very same batch function in-process (debugging, tests);
+``Engine(scheduler="tcp://HOST:PORT")`` uses an existing cluster; otherwise a ``LocalCluster`` with one
+single-threaded worker process per core is started and closed with the engine.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+import uuid
+from collections.abc import Callable, Generator, Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from pipeline.config import EngineConfig
+from pipeline.errors import ConfigError, DecodeError, FleetcalError, InputError, ProcessingError
+from pipeline.frames import CameraFrame, LidarFrame
+from pipeline.progress import Progress
+
+__all__ = [
+    "CAMERA_TYPES",
+    "LIDAR_TYPES",
+    "BatchResult",
+    "Engine",
+    "EngineStats",
+    "FrameBatch",
+    "NumbaWarmup",
+    "plan_batches",
+    "run_batch",
+    "warm_up_kernels",
+]
+
+log = logging.getLogger(__name__)
+
+LIDAR_TYPES = frozenset({"sensor_msgs/msg/PointCloud2"})
+CAMERA_TYPES = frozenset({"sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"})
+_SKIP_EXAMPLES = 5
+
+PathsArg = str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
+
+
+@dataclass(frozen=True)
+class FrameBatch:
+    """One task: the messages of ``topic`` with ``start_ns <= log_time_ns < end_ns`` in ``paths``.
+
+    Attributes:
+        index: position of the batch in log-time order.
+        paths: the log's files (as given to ``readers.open.open_log``).
+        topic: lidar or camera topic.
+        start_ns, end_ns: log-time range, ns (end exclusive).
+        n_messages: messages of the topic in the range (counted on the client).
+        allow_truncated: open damaged logs with what is intact.
+    """
+
+    index: int
+    paths: tuple[str, ...]
+    topic: str
+    start_ns: int
+    end_ns: int
+    n_messages: int
+    allow_truncated: bool = False
+
+
+@dataclass
+class BatchResult:
+    """What a worker sends back for one batch: stage results (log-time order) and skip counts."""
+
+    index: int
+    results: list[Any]
+    frames_done: int
+    skip_reasons: dict[str, int]
+    skip_examples: list[str]
+    worker_s: float
+    worker_pid: int
+    worker_cpu_s: float = 0.0
+
+
+@dataclass
+class EngineStats:
+    """Counters of the last ``Engine.map_frames`` run.
+
+    Attributes:
+        frames_total: messages of the topic in the time range.
+        frames_done: frames whose stage returned a result.
+        frames_skipped: frames skipped (decode error, InputError in the stage, stage returned None).
+        skip_reasons: skipped frames per reason.
+        skip_examples: the first few skip messages, for the log.
+        batches: tasks run.
+        elapsed_s: wall time of the run, s.
+        worker_s: summed wall time spent inside batches on the workers, s.
+        worker_cpu_s: summed CPU time of the batches' worker processes, s.
+    """
+
+    frames_total: int = 0
+    frames_done: int = 0
+    frames_skipped: int = 0
+    skip_reasons: dict[str, int] = field(default_factory=dict)
+    skip_examples: list[str] = field(default_factory=list)
+    batches: int = 0
+    elapsed_s: float = 0.0
+    worker_s: float = 0.0
+    worker_cpu_s: float = 0.0
+
+    @property
+    def frames_per_s(self) -> float:
+        return (self.frames_done + self.frames_skipped) / self.elapsed_s if self.elapsed_s > 0 else 0.0
+
+    def add(self, batch: BatchResult) -> None:
+        self.batches += 1
+        self.frames_done += batch.frames_done
+        self.worker_s += batch.worker_s
+        self.worker_cpu_s += batch.worker_cpu_s
+        for reason, count in batch.skip_reasons.items():
+            self.frames_skipped += count
+            self.skip_reasons[reason] = self.skip_reasons.get(reason, 0) + count
+        room = _SKIP_EXAMPLES - len(self.skip_examples)
+        if room > 0:
+            self.skip_examples.extend(batch.skip_examples[:room])
+
+
+def _normalise_paths(log_paths: PathsArg) -> tuple[str, ...]:
+    if isinstance(log_paths, (str, os.PathLike)):
+        return (os.fspath(log_paths),)
+    paths = tuple(os.fspath(p) for p in log_paths)
+    if not paths:
+        raise InputError("no log given")
+    return paths
+
+
+def plan_batches(
+    log_paths: PathsArg,
+    topic: str,
+    batch_size: int = 32,
+    start_ns: int | None = None,
+    end_ns: int | None = None,
+    allow_truncated: bool = False,
+) -> list[FrameBatch]:
+    """Cut the topic's messages into log-time ranges of ``batch_size`` messages (client side).
+
+    Reads only the messages' log times (``reader.messages``, nothing is decoded). Messages sharing a
+    log time never straddle two batches.
+
+    Raises:
+        InputError: unknown topic, a type the engine cannot decode, ``batch_size < 1``; reader errors.
+    """
+    from readers.open import open_log
+
+    if batch_size < 1:
+        raise InputError(f"batch_size must be >= 1, got {batch_size}")
+    paths = _normalise_paths(log_paths)
+    with open_log(list(paths), allow_truncated=allow_truncated) as reader:
+        _check_topic(reader.topics, topic)
+        times = np.fromiter(
+            (raw.log_time_ns for raw in reader.messages([topic], start_ns, end_ns)), dtype=np.int64
+        )
+    if times.size == 0:
+        return []
+    times.sort(kind="stable")
+    starts = np.unique(times[::batch_size])
+    ends = np.append(starts[1:], times[-1] + 1)
+    counts = np.searchsorted(times, ends, side="left") - np.searchsorted(times, starts, side="left")
+    return [
+        FrameBatch(i, paths, topic, int(s), int(e), int(c), allow_truncated)
+        for i, (s, e, c) in enumerate(zip(starts, ends, counts, strict=True))
+    ]
+
+
+def _check_topic(topics: dict[str, Any], topic: str) -> str:
+    if topic not in topics:
+        raise InputError(f"topic {topic!r} is not in the log (topics: {', '.join(sorted(topics)) or 'none'})")
+    msgtype = str(topics[topic].msgtype)
+    if msgtype not in LIDAR_TYPES | CAMERA_TYPES:
+        raise InputError(
+            f"topic {topic!r} has type {msgtype}; the engine runs stages on PointCloud2, Image and "
+            "CompressedImage topics"
+        )
+    return msgtype
+
+
+def run_batch(batch: FrameBatch, stage_fn: Callable[[Any], Any]) -> BatchResult:
+    """Worker side: open the log, decode the batch's frames, run ``stage_fn`` on each.
+
+    A frame is skipped (and counted by reason) when it cannot be decoded, when the stage raises
+    ``InputError`` (including "no valid points" / "blank image"), or when the stage returns None.
+    Any other exception fails the task (dask retries it).
+    """
+    t0 = time.perf_counter()
+    cpu0 = time.process_time()
+    results: list[Any] = []
+    skipped: dict[str, int] = {}
+    examples: list[str] = []
+
+    def skip(reason: str, message: str) -> None:
+        skipped[reason] = skipped.get(reason, 0) + 1
+        if len(examples) < _SKIP_EXAMPLES:
+            examples.append(message)
+
+    for frame in _iter_frames(batch, skip):
+        reason = _blank_reason(frame)
+        if reason is not None:
+            skip(reason, f"{batch.topic} @ {frame.stamp_ns}: {reason}")
+            continue
+        try:
+            result = stage_fn(frame)
+        except InputError as err:
+            skip(f"stage {type(err).__name__}", f"{batch.topic} @ {frame.stamp_ns}: {err}")
+            continue
+        if result is None:
+            skip("stage returned None", f"{batch.topic} @ {frame.stamp_ns}: stage returned None")
+            continue
+        results.append(result)
+    return BatchResult(
+        index=batch.index,
+        results=results,
+        frames_done=len(results),
+        skip_reasons=skipped,
+        skip_examples=examples,
+        worker_s=time.perf_counter() - t0,
+        worker_pid=os.getpid(),
+        worker_cpu_s=time.process_time() - cpu0,
+    )
+
+
+def _blank_reason(frame: LidarFrame | CameraFrame) -> str | None:
+    if isinstance(frame, LidarFrame):
+        pts = frame.points_xyz
+        if pts.shape[0] == 0 or not np.isfinite(pts).all(axis=1).any():
+            return "no valid points"
+        return None
+    image = frame.image
+    if image.size == 0 or image.min() == image.max():
+        return "blank image"
+    return None
+
+
+def _iter_frames(batch: FrameBatch, skip: Callable[[str, str], None]) -> Iterator[LidarFrame | CameraFrame]:
+    """Decoded frames of the batch; a message that cannot be decoded is reported to ``skip``.
+
+    Camera frames get the latest CameraInfo of the topic (``readers.frames.CameraInfoTracker``:
+    seeded with the log's first CameraInfo, updated by those inside the batch's range).
+    """
+    from readers.decode import decode_pointcloud2
+    from readers.frames import CameraInfoTracker, camera_info_topic_for, decode_camera_image
+    from readers.open import open_log
+
+    with open_log(list(batch.paths), allow_truncated=batch.allow_truncated) as reader:
+        msgtype = _check_topic(reader.topics, batch.topic)
+        info: CameraInfoTracker | None = None
+        wanted = [batch.topic]
+        if msgtype in CAMERA_TYPES:
+            info = CameraInfoTracker(reader, camera_info_topic_for(batch.topic, reader.topics))
+            if info.topic is not None:
+                wanted.append(info.topic)
+        for raw in reader.messages(wanted, batch.start_ns, batch.end_ns):
+            if info is not None and raw.topic == info.topic:
+                info.update(reader, raw)
+                continue
+            frame: LidarFrame | CameraFrame
+            try:
+                msg = reader.deserialize(raw)
+                if info is None:
+                    frame = decode_pointcloud2(msg, batch.topic, raw.log_time_ns)
+                else:
+                    frame = decode_camera_image(msgtype, msg, batch.topic, raw.log_time_ns)
+                    frame.camera = info.model
+            except DecodeError as err:
+                skip(f"decode {type(err).__name__}", f"{batch.topic} @ log time {raw.log_time_ns}: {err}")
+                continue
+            yield frame
+
+
+def warm_up_kernels() -> None:
+    """Compile (or load from numba's cache) the per-frame kernels in this process."""
+    from stages import image_kernels, lidar_feature_kernels
+
+    image_kernels.warm_up()
+    lidar_feature_kernels.warm_up()
+
+
+try:
+    from distributed.diagnostics.plugin import WorkerPlugin as _WorkerPluginBase
+except ImportError:  # pragma: no cover - distributed is a hard dependency
+    _WorkerPluginBase = object  # type: ignore[assignment,misc]
+
+
+class NumbaWarmup(_WorkerPluginBase):  # type: ignore[misc,valid-type]
+    """Worker plugin: run the warm-up functions once when a worker starts (also after a restart)."""
+
+    name = "fleetcal-numba-warmup"
+
+    def __init__(self, warmups: Sequence[Callable[[], None]] = (warm_up_kernels,)) -> None:
+        self.warmups = tuple(warmups)
+
+    def setup(self, worker: Any) -> None:
+        for fn in self.warmups:
+            fn()
+
+
+class Engine:
+    """Where per-frame stages run: in-process, a local dask cluster, or an existing one.
+
+    Args:
+        scheduler: ``tcp://HOST:PORT`` of a running dask scheduler (None: local cluster).
+        workers: local worker processes (None: one per core; 0: in-process, no dask).
+        retries: times dask retries a failed task.
+        max_in_flight: tasks submitted at once (None: 2 per worker + 1).
+        quiet: no progress bar.
+        warmups: functions run once per worker before any task (numba kernel compilation).
+        memory_limit: per-worker memory limit of the local cluster (dask syntax, e.g. ``"2GiB"``).
+
+    Use as a context manager; ``stats`` holds the counters of the last ``map_frames``.
+    """
+
+    def __init__(
+        self,
+        scheduler: str | None = None,
+        workers: int | None = None,
+        *,
+        retries: int = 2,
+        max_in_flight: int | None = None,
+        quiet: bool = False,
+        warmups: Sequence[Callable[[], None]] = (warm_up_kernels,),
+        memory_limit: str | float | None = "auto",
+    ) -> None:
+        if workers is not None and workers < 0:
+            raise ConfigError(f"workers must be >= 0, got {workers}")
+        if scheduler is not None and workers == 0:
+            raise ConfigError("workers=0 (in-process) cannot be combined with a scheduler address")
+        if max_in_flight is not None and max_in_flight < 1:
+            raise ConfigError(f"max_in_flight must be >= 1, got {max_in_flight}")
+        self.scheduler = scheduler
+        self.workers = workers
+        self.retries = retries
+        self.quiet = quiet
+        self.warmups = tuple(warmups)
+        self.memory_limit = memory_limit
+        self._max_in_flight = max_in_flight
+        self.stats = EngineStats()
+        self._client: Any = None
+        self._cluster: Any = None
+        self._warm_in_process = False
+
+    @classmethod
+    def from_config(cls, config: EngineConfig, quiet: bool = False) -> Engine:
+        """An engine from the ``[engine]`` section of ``pipeline.config.Config``."""
+        return cls(
+            scheduler=config.scheduler,
+            workers=config.workers,
+            retries=config.retries,
+            max_in_flight=config.max_in_flight,
+            quiet=quiet,
+        )
+
+    @property
+    def in_process(self) -> bool:
+        return self.workers == 0 and self.scheduler is None
+
+    @property
+    def client(self) -> Any:
+        """The ``distributed.Client`` (started on first use); None when in-process."""
+        if self.in_process:
+            return None
+        if self._client is None:
+            self._start()
+        return self._client
+
+    def n_workers(self) -> int:
+        """Workers now connected (1 when in-process)."""
+        if self.in_process:
+            return 1
+        return max(1, len(self.client.nthreads()))
+
+    def max_in_flight(self) -> int:
+        """Tasks submitted at once: ``max_in_flight`` or 2 per connected worker + 1."""
+        return self._max_in_flight or 2 * self.n_workers() + 1
+
+    def _start(self) -> None:
+        from distributed import Client, LocalCluster
+
+        if self.scheduler is not None:
+            try:
+                self._client = Client(self.scheduler, timeout="10s")
+            except (OSError, TimeoutError) as err:
+                raise ConfigError(f"cannot connect to the dask scheduler at {self.scheduler}: {err}") from err
+        else:
+            n = self.workers if self.workers is not None else (os.cpu_count() or 1)
+            self._cluster = LocalCluster(
+                n_workers=n,
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=None,
+                silence_logs=logging.ERROR,
+                memory_limit=self.memory_limit,
+            )
+            self._client = Client(self._cluster)
+        if self.warmups:
+            self._client.register_plugin(NumbaWarmup(self.warmups), name=NumbaWarmup.name)
+
+    def close(self) -> None:
+        """Close the client and the local cluster (a remote cluster keeps running)."""
+        if self._client is not None:
+            self._client.close()
+            self._client = None
+        if self._cluster is not None:
+            self._cluster.close()
+            self._cluster = None
+
+    def __enter__(self) -> Engine:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def map_frames(
+        self,
+        log_paths: PathsArg,
+        topic: str,
+        stage_fn: Callable[[Any], Any],
+        batch_size: int = 32,
+        start_ns: int | None = None,
+        end_ns: int | None = None,
+        *,
+        ordered: bool = False,
+        allow_truncated: bool = False,
+        desc: str | None = None,
+    ) -> Generator[Any, None, None]:
+        """Run ``stage_fn(frame)`` on every frame of ``topic`` in the log-time range; yield results.
+
+        Args:
+            log_paths: the log (file, folder or files of one recording); workers open it by path.
+            topic: a PointCloud2 (``LidarFrame``) or Image / CompressedImage (``CameraFrame``) topic.
+            stage_fn: picklable function of one frame; raise ``InputError`` or return None to skip it.
+            batch_size: frames per task.
+            start_ns, end_ns: log-time range, ns (end exclusive); None for the whole log.
+            ordered: yield in log-time order (buffers at most ``max_in_flight`` batches) instead of
+                as batches complete.
+            allow_truncated: read damaged logs as far as they are intact.
+            desc: progress-bar label (default: the topic).
+
+        Yields:
+            the stage's results; ``self.stats`` is complete once the iterator is exhausted.
+
+        Raises:
+            InputError: unknown topic or unsupported type; reader errors.
+            ProcessingError: a stage failed with an unexpected error after the retries.
+        """
+        t0 = time.perf_counter()
+        batches = plan_batches(log_paths, topic, batch_size, start_ns, end_ns, allow_truncated)
+        self.stats = EngineStats(frames_total=sum(b.n_messages for b in batches))
+        progress = Progress(self.stats.frames_total, desc=desc or topic, quiet=self.quiet)
+        source = self._run_in_process(batches, stage_fn) if self.in_process else self._run_dask(
+            batches, stage_fn, ordered
+        )
+        try:
+            for batch_result in source:
+                self.stats.add(batch_result)
+                progress.update(batch_result.frames_done + sum(batch_result.skip_reasons.values()))
+                yield from batch_result.results
+        finally:
+            source.close()
+            self.stats.elapsed_s = time.perf_counter() - t0
+            progress.close()
+            if self.stats.frames_skipped:
+                log.info("%s: skipped %d of %d frames: %s", topic, self.stats.frames_skipped,
+                         self.stats.frames_total, self.stats.skip_reasons)
+
+    def _run_in_process(
+        self, batches: Iterable[FrameBatch], stage_fn: Callable[[Any], Any]
+    ) -> Generator[BatchResult, None, None]:
+        if not self._warm_in_process:
+            for fn in self.warmups:
+                fn()
+            self._warm_in_process = True
+        for batch in batches:
+            try:
+                yield run_batch(batch, stage_fn)
+            except FleetcalError:
+                raise
+            except Exception as err:
+                raise _stage_failure(batch, stage_fn, err) from err
+
+    def _run_dask(
+        self, batches: Sequence[FrameBatch], stage_fn: Callable[[Any], Any], ordered: bool
+    ) -> Generator[BatchResult, None, None]:
+        from distributed import as_completed
+
+        client = self.client
+        window = self.max_in_flight()
+        run_id = uuid.uuid4().hex[:12]
+        todo = iter(batches)
+        in_flight: dict[str, FrameBatch] = {}
+        ready: dict[int, BatchResult] = {}
+        next_index = 0
+        completed = as_completed()
+
+        def submit_more() -> None:
+            while len(in_flight) + len(ready) < window:
+                batch = next(todo, None)
+                if batch is None:
+                    return
+                future = client.submit(
+                    run_batch, batch, stage_fn, key=f"fleetcal-batch-{run_id}-{batch.index}",
+                    retries=self.retries, pure=False,
+                )
+                in_flight[future.key] = batch
+                completed.add(future)
+
+        submit_more()
+        try:
+            for future in completed:
+                batch = in_flight.pop(future.key)
+                try:
+                    result: BatchResult = future.result()
+                except FleetcalError:
+                    raise
+                except Exception as err:
+                    raise _stage_failure(batch, stage_fn, err) from err
+                finally:
+                    future.release()
+                if not ordered:
+                    submit_more()
+                    yield result
+                    continue
+                ready[result.index] = result
+                while next_index in ready:
+                    out = ready.pop(next_index)
+                    next_index += 1
+                    submit_more()
+                    yield out
+                submit_more()
+        finally:
+            for key in list(in_flight):
+                client.cancel([key], force=True)
+            completed.clear()
+
+
+def _stage_failure(batch: FrameBatch, stage_fn: Callable[[Any], Any], err: BaseException) -> ProcessingError:
+    inner = getattr(stage_fn, "func", stage_fn)
+    name = getattr(inner, "__name__", "stage")
+    return ProcessingError(
+        f"{name} failed on {batch.topic} (log time {batch.start_ns}..{batch.end_ns}): "
+        f"{type(err).__name__}: {err}"
+    )

@@ -1,0 +1,213 @@
+"""Camera image gradients (GOM paper section 3.3): grey, histogram equalisation, optional Gaussian
+blur, 3x3 Sobel, gradient magnitude and orientation; plus an optional undistortion helper.
+
+Pixel (row, column) = (v, u) of the image; ``gx`` is the derivative along u (columns, x right) and
+``gy`` along v (rows, y down), so ``orientation = atan2(gy, gx)`` is in the optical-frame image plane.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.camera_model import CameraModel
+from pipeline.errors import InputError
+from pipeline.frames import CameraFrame
+from stages import image_kernels
+
+__all__ = [
+    "CameraGradientResult",
+    "ImageGradients",
+    "camera_frame_gradients",
+    "compute_image_gradients",
+    "to_grey_u8",
+    "undistort_image",
+]
+
+
+@dataclass
+class ImageGradients:
+    """Gradients of one image, all (H, W) float32.
+
+    Attributes:
+        gx, gy: 3x3 Sobel derivative along columns (x) and rows (y), in equalised 8-bit grey levels
+            (Sobel weights unnormalised, so a step of 1 grey level gives 4).
+        magnitude: ``hypot(gx, gy)``.
+        orientation: ``atan2(gy, gx)``, radians in (-pi, pi]; 0 where the magnitude is 0.
+    All four are 0 on the 1-pixel image border and outside the (eroded) valid mask.
+    """
+
+    gx: NDArray[np.float32]
+    gy: NDArray[np.float32]
+    magnitude: NDArray[np.float32]
+    orientation: NDArray[np.float32]
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (int(self.gx.shape[0]), int(self.gx.shape[1]))
+
+
+def to_grey_u8(image: NDArray[np.generic]) -> NDArray[np.uint8]:
+    """8-bit grey of an (H, W) uint8/uint16 or (H, W, 3) RGB uint8/uint16 image.
+
+    16-bit images are scaled min-max to 0..255 first (so 12-bit data in 16-bit words uses the whole
+    range); colour is converted with the ITU-R 601 weights of ``cv2.COLOR_RGB2GRAY``.
+
+    Raises:
+        InputError: not an ndarray, wrong shape or dtype.
+    """
+    _check_image(image)
+    img = np.ascontiguousarray(image)
+    if img.dtype == np.uint16:
+        lo, hi = int(img.min()), int(img.max())
+        scale = 255.0 / (hi - lo) if hi > lo else 0.0
+        img = cv2.convertScaleAbs(img, alpha=scale, beta=-lo * scale)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+    return np.ascontiguousarray(img, dtype=np.uint8)
+
+
+def compute_image_gradients(
+    image: NDArray[np.generic],
+    blur_sigma_px: float = 0.0,
+    equalize: bool = True,
+    mask: NDArray[np.bool_] | None = None,
+) -> ImageGradients:
+    """Sobel gradients of an image after grey conversion, equalisation and optional blur.
+
+    Args:
+        image: (H, W) mono8/mono16 or (H, W, 3) RGB uint8 (see ``to_grey_u8``); H, W >= 3.
+        blur_sigma_px: Gaussian blur sigma in pixels before the Sobel (0: none).
+        equalize: histogram-equalise the grey image (``cv2.equalizeHist``; with a mask the histogram
+            is taken over the valid pixels only).
+        mask: optional (H, W) bool, True where the image is valid. Gradients are zeroed where the
+            3x3 Sobel window touches an invalid pixel (the mask eroded by one pixel).
+
+    Returns:
+        ImageGradients (float32). A constant image gives exactly zero gradients (no blur round-off).
+
+    Raises:
+        InputError: bad image shape/dtype, image smaller than 3x3, bad mask, negative/NaN sigma.
+    """
+    grey = to_grey_u8(image)
+    height, width = grey.shape
+    if height < 3 or width < 3:
+        raise InputError(f"image of {height}x{width} pixels is too small for a 3x3 Sobel (need >= 3x3)")
+    if not np.isfinite(blur_sigma_px) or blur_sigma_px < 0:
+        raise InputError(f"blur_sigma_px must be a finite number >= 0, got {blur_sigma_px}")
+    valid_u8 = _valid_mask(mask, grey.shape)
+    if int(grey.min()) == int(grey.max()):
+        zeros = np.zeros(grey.shape, np.float32)
+        return ImageGradients(gx=zeros, gy=zeros.copy(), magnitude=zeros.copy(), orientation=zeros.copy())
+    if equalize:
+        grey = _equalize(grey, valid_u8)
+    grey_f: NDArray[np.float32] = grey.astype(np.float32)
+    if blur_sigma_px > 0:
+        sigma = float(blur_sigma_px)
+        grey_f = np.asarray(cv2.GaussianBlur(grey_f, (0, 0), sigmaX=sigma, sigmaY=sigma), dtype=np.float32)
+    gx = np.asarray(cv2.Sobel(grey_f, cv2.CV_32F, 1, 0, ksize=3), dtype=np.float32)
+    gy = np.asarray(cv2.Sobel(grey_f, cv2.CV_32F, 0, 1, ksize=3), dtype=np.float32)
+    magnitude = np.empty_like(gx)
+    if valid_u8 is None:
+        image_kernels.gradient_magnitude(gx, gy, np.empty((0, 0), np.uint8), False, magnitude)
+    else:
+        eroded = cv2.erode(valid_u8, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)
+        image_kernels.gradient_magnitude(gx, gy, eroded, True, magnitude)
+    orientation = np.arctan2(gy, gx).astype(np.float32, copy=False)
+    return ImageGradients(gx=gx, gy=gy, magnitude=magnitude, orientation=orientation)
+
+
+def undistort_image(
+    image: NDArray[np.generic], camera: CameraModel
+) -> tuple[NDArray[np.generic], CameraModel]:
+    """Remove lens distortion; returns the image and its distortion-free pinhole model (same K).
+
+    ``plumb_bob`` / ``rational_polynomial`` use ``cv2.undistort``; ``equidistant`` uses
+    ``cv2.fisheye.undistortImage``; ``none`` (or all-zero coefficients) returns the image unchanged.
+    Pixels with no source come out 0.
+
+    Raises:
+        InputError: image size differs from the camera's, or a ``cylindrical`` model (a panorama has
+            no pinhole equivalent).
+    """
+    _check_image(image)
+    height, width = int(image.shape[0]), int(image.shape[1])
+    if (width, height) != (camera.width, camera.height):
+        raise InputError(f"image is {width}x{height} but the camera model is {camera.width}x{camera.height}")
+    model = camera.distortion_model
+    if model == "cylindrical":
+        raise InputError("a cylindrical (panoramic) camera cannot be undistorted to a pinhole image")
+    pinhole = CameraModel(camera.width, camera.height, camera.K.copy(), np.zeros(5), "plumb_bob")
+    if model == "none" or not np.any(camera.D):
+        return image, pinhole
+    if model == "equidistant":
+        out = cv2.fisheye.undistortImage(np.asarray(image), camera.K, camera.coefficients(4), Knew=camera.K)
+    else:
+        n = 8 if model == "rational_polynomial" else 5
+        out = cv2.undistort(np.asarray(image), camera.K, camera.coefficients(n))
+    return np.asarray(out), pinhole
+
+
+@dataclass
+class CameraGradientResult:
+    """Per-frame result of ``camera_frame_gradients``: stamp, topic, size and the gradients."""
+
+    stamp_ns: int
+    topic: str
+    width: int
+    height: int
+    gradients: ImageGradients
+
+
+def camera_frame_gradients(
+    frame: CameraFrame, blur_sigma_px: float = 0.0, equalize: bool = True, undistort: bool = False
+) -> CameraGradientResult:
+    """Engine stage: gradients of one camera frame (undistorted first when asked and a model exists).
+
+    Raises:
+        InputError: a blank (constant) image, or bad image data.
+    """
+    image = frame.image
+    _check_image(image)
+    if image.size and int(image.min()) == int(image.max()):
+        raise InputError(f"blank image (constant value {int(image.min())}) at stamp {frame.stamp_ns}")
+    if undistort and frame.camera is not None:
+        image, _ = undistort_image(image, frame.camera)
+    grads = compute_image_gradients(image, blur_sigma_px=blur_sigma_px, equalize=equalize)
+    return CameraGradientResult(frame.stamp_ns, frame.topic, frame.width, frame.height, grads)
+
+
+def _check_image(image: object) -> None:
+    if not isinstance(image, np.ndarray):
+        raise InputError(f"image must be a numpy array, got {type(image).__name__}")
+    if image.dtype not in (np.uint8, np.uint16):
+        raise InputError(f"image dtype must be uint8 or uint16, got {image.dtype}")
+    if image.ndim == 2 or (image.ndim == 3 and image.shape[2] == 3):
+        return
+    raise InputError(f"image must be (H, W) or (H, W, 3), got shape {image.shape}")
+
+
+def _valid_mask(mask: NDArray[np.bool_] | None, shape: tuple[int, ...]) -> NDArray[np.uint8] | None:
+    if mask is None:
+        return None
+    if not isinstance(mask, np.ndarray) or mask.shape != shape:
+        got = getattr(mask, "shape", type(mask).__name__)
+        raise InputError(f"mask must be an array of the image's shape {shape}, got {got}")
+    return np.ascontiguousarray(mask, dtype=bool).view(np.uint8)
+
+
+def _equalize(grey: NDArray[np.uint8], valid_u8: NDArray[np.uint8] | None) -> NDArray[np.uint8]:
+    if valid_u8 is None:
+        return np.asarray(cv2.equalizeHist(grey))
+    hist = np.bincount(grey[valid_u8.astype(bool)], minlength=256).astype(np.float64)
+    total = hist.sum()
+    nonzero = np.flatnonzero(hist)
+    if nonzero.size <= 1:
+        return grey
+    cdf = np.cumsum(hist)
+    first = hist[nonzero[0]]
+    lut = np.clip(np.rint((cdf - first) * 255.0 / (total - first)), 0, 255).astype(np.uint8)
+    return np.asarray(cv2.LUT(grey, lut))

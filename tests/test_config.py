@@ -1,0 +1,157 @@
+"""Configuration: defaults, TOML, environment and CLI precedence, typed conversion, errors, round trip."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+import tomllib
+
+from pipeline import config as config_module
+from pipeline.config import (
+    Config,
+    config_from_dict,
+    config_to_dict,
+    load_config,
+    to_toml,
+    write_toml,
+)
+from pipeline.errors import ConfigError
+
+
+def test_defaults() -> None:
+    config = load_config(env={})
+    assert config.calibration.particles == 200
+    assert config.calibration.metric == "gom"
+    assert config.engine.workers is None and config.engine.batch_size == 32
+    assert config.io.pairing_tolerance_ns == 50_000_000
+    assert config.mapping.channels == "intensity"
+
+
+def test_precedence_file_then_env_then_cli(tmp_path: Path) -> None:
+    path = tmp_path / "fleetcal.toml"
+    path.write_text(
+        "[calibration]\nparticles = 50\nsearch_deg = 3\nfeature = 'normals'\n"
+        "[engine]\nbatch_size = 8\nworkers = 3\n"
+    )
+    env = {
+        "FLEETCAL_CALIBRATION__PARTICLES": "80",
+        "FLEETCAL_ENGINE__WORKERS": "none",
+        "FLEETCAL_IO__ALLOW_TRUNCATED": "yes",
+        "FLEETCAL_MAPPING__VOXEL_M": "0.5",
+        "FLEETCAL_VERBOSE": "ignored: not a section__key variable",
+        "HOME": "/root",
+    }
+    config = load_config(path, env=env, overrides={"calibration.particles": 120, "engine.batch_size": None})
+    assert config.calibration.particles == 120
+    assert config.calibration.search_deg == 3.0 and isinstance(config.calibration.search_deg, float)
+    assert config.calibration.feature == "normals"
+    assert config.engine.batch_size == 8
+    assert config.engine.workers is None
+    assert config.io.allow_truncated is True
+    assert config.mapping.voxel_m == 0.5
+
+
+@pytest.mark.parametrize(
+    "env, match",
+    [
+        (
+            {"FLEETCAL_CALIBRATION__PARTICLES": "many"},
+            r"FLEETCAL_CALIBRATION__PARTICLES.*calibration\.particles",
+        ),
+        ({"FLEETCAL_CALIBRATION__METRIC": "mi"}, r"calibration\.metric.*gom, nmi, levinson"),
+        ({"FLEETCAL_CALIBRATION__NOPE": "1"}, r"unknown config key calibration\.nope"),
+        ({"FLEETCAL_NOSECTION__KEY": "1"}, r"unknown config section 'nosection'"),
+        ({"FLEETCAL_IO__ALLOW_TRUNCATED": "maybe"}, r"io\.allow_truncated.*boolean"),
+        ({"FLEETCAL_MAPPING__VOXEL_M": "nan"}, r"mapping\.voxel_m.*finite"),
+        ({"FLEETCAL_CALIBRATION__PARTICLES": "0"}, r"calibration\.particles: must be >= 1"),
+    ],
+)
+def test_bad_environment_values_name_the_key(env: dict[str, str], match: str) -> None:
+    with pytest.raises(ConfigError, match=match):
+        load_config(env=env)
+
+
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("[calibration]\nparticles = 'ten'\n", r"calibration\.particles.*expected an integer"),
+        ("[calibration]\nparticles = true\n", r"calibration\.particles.*boolean"),
+        ("[calibration]\nsearch_m = -1.0\n", r"calibration\.search_m: must be >= 0"),
+        ("[engine]\nscheduler = 'localhost'\n", r"engine\.scheduler.*tcp://HOST:PORT"),
+        ("[calibraton]\nparticles = 1\n", r"unknown config section 'calibraton'"),
+        ("calibration = 3\n", r"\[calibration\] must be a table"),
+        ("[calibration\n", r"invalid TOML"),
+    ],
+)
+def test_bad_files_name_the_key(tmp_path: Path, text: str, match: str) -> None:
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=match):
+        load_config(path, env={})
+
+
+def test_missing_file_and_bad_override() -> None:
+    with pytest.raises(ConfigError, match="not found"):
+        load_config("/nonexistent/fleetcal.toml", env={})
+    with pytest.raises(ConfigError, match=r"section\.key"):
+        load_config(env={}, overrides={"particles": 3})
+    with pytest.raises(ConfigError, match=r"command line.*calibration\.frames"):
+        load_config(env={}, overrides={"calibration.frames": "3"})
+
+
+def test_write_toml_round_trips_and_is_atomic(tmp_path: Path) -> None:
+    config = load_config(
+        env={"FLEETCAL_ENGINE__SCHEDULER": "tcp://10.0.0.1:8786"},
+        overrides={"calibration.search_deg": 2.5, "calibration.feature": "range", "mapping.k": 12},
+    )
+    path = write_toml(config, tmp_path / "config.toml")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["config.toml"]
+    parsed = tomllib.loads(path.read_text())
+    assert parsed["engine"]["scheduler"] == "tcp://10.0.0.1:8786"
+    assert "workers" not in parsed["engine"]
+    assert load_config(path, env={}) == config
+    assert config_from_dict(parsed) == config
+    assert config_to_dict(config)["engine"]["workers"] is None
+
+
+def test_write_toml_failure_leaves_no_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    def broken(_: Config) -> str:
+        raise ConfigError("cannot serialise")
+
+    monkeypatch.setattr(config_module, "to_toml", broken)
+    with pytest.raises(ConfigError):
+        write_toml(Config(), tmp_path / "config.toml")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_strings_with_quotes_survive_the_round_trip(tmp_path: Path) -> None:
+    config = Config()
+    config.engine.scheduler = 'tcp://host:1 "quoted" \\ back'
+    text = to_toml(config)
+    assert tomllib.loads(text)["engine"]["scheduler"] == config.engine.scheduler
+
+
+def test_new_fields_and_lists_convert_by_type(monkeypatch: pytest.MonkeyPatch) -> None:
+    @dataclass
+    class Extra:
+        names: list[str] = field(default_factory=lambda: ["a"])
+        weights: list[float] = field(default_factory=list)
+        limit: int | None = None
+
+    @dataclass
+    class BigConfig(Config):
+        extra: Extra = field(default_factory=Extra)
+
+    monkeypatch.setattr(config_module, "Config", BigConfig)
+    config = load_config(
+        env={
+            "FLEETCAL_EXTRA__NAMES": "x, y",
+            "FLEETCAL_EXTRA__WEIGHTS": "1, 2.5",
+            "FLEETCAL_EXTRA__LIMIT": "7",
+        }
+    )
+    assert isinstance(config, BigConfig)
+    assert config.extra.names == ["x", "y"] and config.extra.weights == [1.0, 2.5] and config.extra.limit == 7
+    assert tomllib.loads(to_toml(config))["extra"] == {"names": ["x", "y"], "weights": [1.0, 2.5], "limit": 7}
