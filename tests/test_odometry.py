@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from pipeline.errors import InputError
+from pipeline.errors import ConfigError, InputError
 from pipeline.frames import LidarFrame
 from pipeline.transforms import apply, from_xyz_rpy, invert, rotation_error_deg, translation_error_m
 from stages.registration import RegistrationConfig, VoxelMap, prepare_pointset, run_odometry
+from stages.registration.odometry import relative_translation_drift
 from tests.test_registration import room_scene
 
 
@@ -136,17 +137,41 @@ def test_voxel_map_averages_positions_and_channels() -> None:
         VoxelMap(0.0)
 
 
-@pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    reason=(
-        "known gap: on the simulated corridor (25 scans, 32 beams) GICP underestimates the motion along "
-        "the walls by ~24 % and MC-GICP-intensity does not do better (~25-28 %): the lidar's sensor-fixed "
-        "sampling (rings, incidence-dependent intensity) biases scan-to-scan matching towards zero motion"
-    ),
-)
-def test_corridor_mcgicp_drifts_less_than_gicp() -> None:
-    """Paper Fig. 3 on engineer C's simulated poster corridor: MC-GICP should hold the along-wall motion."""
+def test_scan_to_scan_and_scan_to_map_agree_on_the_room_and_keyframes_bound_the_window() -> None:
+    rng = np.random.default_rng(24)
+    poses = true_poses(10)
+    frames = scan_frames(rng, poses)
+    config = RegistrationConfig(voxel_size_m=0.1)
+    for mode in ("scan_to_scan", "scan_to_map"):
+        steps = run_odometry(frames, config, mode=mode, local_map_keyframes=3, keyframe_distance_m=0.4)
+        est = np.stack([s.T_map_lidar for s in steps])
+        truth = np.stack([invert(poses[0]) @ T for T in poses])
+        assert relative_translation_drift(est, truth, segment_m=1.0) < 0.02, mode
+        assert rotation_error_deg(est[-1], truth[-1]) < 0.3, mode
+        # T_prev_curr chains to T_map_lidar in both modes
+        np.testing.assert_allclose(steps[-2].T_map_lidar @ steps[-1].T_prev_curr, steps[-1].T_map_lidar, atol=1e-9)
+    with pytest.raises(ConfigError, match="unknown odometry mode"):
+        run_odometry(frames, config, mode="scan_to_world")  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="local_map_keyframes"):
+        run_odometry(frames, config, local_map_keyframes=0)
+
+
+def test_relative_translation_drift_matches_hand_computed_values() -> None:
+    truth = np.stack([from_xyz_rpy(float(k), 0.0, 0.0, 0.0, 0.0, 0.0) for k in range(11)])  # 10 m along x
+    est = truth.copy()
+    est[:, 0, 3] *= 1.02  # 2 % scale error: every segment is 2 % too long
+    assert relative_translation_drift(est, truth, segment_m=5.0) == pytest.approx(0.02)
+    est_end = truth.copy()
+    est_end[-1, 1, 3] = 0.3  # only the last pose is off, by 0.3 m: segments ending there see 0.3 / 5
+    assert relative_translation_drift(est_end, truth, segment_m=5.0) == pytest.approx(0.3 / 5 / 6)
+    # path shorter than the segment: end-point drift
+    assert relative_translation_drift(est_end, truth, segment_m=50.0) == pytest.approx(0.3 / 10)
+    with pytest.raises(InputError, match="matching"):
+        relative_translation_drift(est[:1], truth[:1], 1.0)
+
+
+def corridor_frames(n: int, max_range_m: float) -> tuple[list[LidarFrame], list[NDArray[np.float64]]]:
+    """De-skewed 32-beam scans of engineer C's poster corridor, 1.5 m/s at 10 Hz."""
     pytest.importorskip("workflows.simulator")
     from workflows.simulator.lidar import LidarModel, simulate_scan
     from workflows.simulator.motion import LoopMotion
@@ -156,22 +181,54 @@ def test_corridor_mcgicp_drifts_less_than_gicp() -> None:
     scene = build_scene("corridor", 0)
     grid = build_grid(scene.triangles)
     motion = LoopMotion(scene.route, 1.5)
-    model = LidarModel(beams=32, columns=1024, seed=0)
+    model = LidarModel(beams=32, columns=1024, max_range_m=max_range_m, seed=0)
     T_base_lidar = from_xyz_rpy(0.0, 0.0, scene.lidar_height_m, 0.0, 0.0, 0.0)
     rng = np.random.default_rng(0)
     frames, poses = [], []
-    for k in range(25):
+    for k in range(n):
         T_world_lidar = motion.T_world_base(k * 0.1) @ T_base_lidar
         points, channels = simulate_scan(scene, grid, model, T_world_lidar, rng).unorganized()
         frames.append(LidarFrame(k, "/lidar", "lidar", points, {"intensity": channels["intensity"]}))
         poses.append(T_world_lidar)
-    T_true = invert(poses[0]) @ poses[-1]
+    return frames, poses
+
+
+def corridor_drift(frames: list[LidarFrame], poses: list[NDArray[np.float64]], method: str, mode: str) -> float:
+    """|final position error| / path length of the odometry on the corridor scans."""
+    channels = "none" if method == "gicp" else "intensity"
+    config = RegistrationConfig(method=method, channels=channels, voxel_size_m=0.1)
+    steps = run_odometry(frames, config, mode=mode)  # type: ignore[arg-type]
     path_m = sum(translation_error_m(poses[k], poses[k + 1]) for k in range(len(poses) - 1))
-    drift = {}
-    for method, channels_mode in (("gicp", "none"), ("mcgicp", "intensity")):
-        config = RegistrationConfig(method=method, channels=channels_mode, voxel_size_m=0.1)
-        steps = run_odometry(frames, config)
-        drift[method] = translation_error_m(steps[-1].T_map_lidar, T_true) / path_m
-    print(f"corridor drift over {path_m:.2f} m: {drift}")
+    return translation_error_m(steps[-1].T_map_lidar, invert(poses[0]) @ poses[-1]) / path_m
+
+
+@pytest.mark.slow
+def test_corridor_scan_to_map_removes_the_scan_to_scan_zero_motion_bias() -> None:
+    """Full-range corridor (the end walls 28 m away are visible): scan-to-scan matching is pulled towards
+    zero motion by the sensor-fixed ring pattern (~24 % drift), the keyframe local map is not (~2 %)."""
+    frames, poses = corridor_frames(25, 100.0)
+    drift_scan = corridor_drift(frames, poses, "gicp", "scan_to_scan")
+    drift_map = corridor_drift(frames, poses, "gicp", "scan_to_map")
+    print(f"corridor GICP drift: scan_to_scan {drift_scan:.3f}, scan_to_map {drift_map:.3f}")
+    assert drift_scan > 0.1
+    assert drift_map < 0.05
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(
+    strict=True,
+    reason=(
+        "known gap: with a 12 m lidar range (corridor ends out of sight, paper Fig. 3 setting) GICP and "
+        "MC-GICP intensity/colour/combined all stay at zero motion (~99 % drift, bench_mapping.py): in a "
+        "translation-invariant tube consecutive scans coincide exactly in the sensor frame (same rays, same "
+        "ring curves), and that sampling coincidence outweighs the posters' texture terms even from a "
+        "true-motion start (pairs converge to identity); see the report for what would make it fair"
+    ),
+)
+def test_corridor_mcgicp_drifts_less_than_gicp() -> None:
+    """Paper Fig. 3 on engineer C's simulated poster corridor: MC-GICP should hold the along-wall motion."""
+    frames, poses = corridor_frames(25, 12.0)
+    drift = {method: corridor_drift(frames, poses, method, "scan_to_map") for method in ("gicp", "mcgicp")}
+    print(f"corridor drift (12 m range): {drift}")
     assert drift["gicp"] > 0.05
     assert drift["mcgicp"] < 0.5 * drift["gicp"]

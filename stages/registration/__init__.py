@@ -1,4 +1,4 @@
-"""Registration: GICP, Multi-Channel GICP (Servos & Waslander) and Color-ICP, plus scan-to-scan odometry.
+"""Registration: GICP, Multi-Channel GICP (Servos & Waslander), Color-ICP; lidar odometry (local map or scan-to-scan).
 
 Typical use::
 
@@ -10,12 +10,21 @@ Typical use::
 
 from stages.registration.covariances import estimate_covariances, knn_indices
 from stages.registration.gicp import RegistrationConfig, RegistrationResult, register
-from stages.registration.odometry import OdometryStep, VoxelMap, run_odometry
+from stages.registration.odometry import (
+    ODOMETRY_MODES,
+    LocalMap,
+    OdometryStep,
+    VoxelMap,
+    relative_translation_drift,
+    run_odometry,
+)
 from stages.registration.pointset import CHANNEL_MODES, PointSet, pointset_from_frame, prepare_pointset
 from stages.registration.voxel import voxel_downsample
 
 __all__ = [
     "CHANNEL_MODES",
+    "ODOMETRY_MODES",
+    "LocalMap",
     "OdometryStep",
     "PointSet",
     "RegistrationConfig",
@@ -26,6 +35,7 @@ __all__ = [
     "pointset_from_frame",
     "prepare_pointset",
     "register",
+    "relative_translation_drift",
     "run_odometry",
     "voxel_downsample",
 ]

@@ -1,27 +1,40 @@
-"""Scan-to-scan odometry over a sequence of scans, and a voxel-grid map with averaged channels.
+"""Lidar odometry over a sequence of scans (scan-to-local-map or scan-to-scan), and a voxel-grid map.
 
-Poses are ``T_map_lidar`` with map = the first scan's lidar frame. Each new scan (source) is
-registered to the previous one (target) starting from a constant-velocity guess (the previous
-relative motion) or from externally given odometry poses.
+Poses are ``T_map_lidar`` with map = the first scan's lidar frame. Each new scan (source) is registered
+starting from a constant-velocity guess (the previous relative motion) or from externally given
+odometry poses, either
+
+- ``scan_to_map`` (default): against a local map made of the last ``local_map_keyframes`` keyframes'
+  prepared points, in the map frame, voxel-downsampled together and given fresh covariances (GICP
+  eq. 4-5 or MC-GICP eq. 6-10) on the merged cloud. A scan becomes a keyframe when it has moved
+  ``keyframe_distance_m`` or turned ``keyframe_rotation_deg`` since the last one; the local map is
+  rebuilt only then, so a step costs one registration plus an amortised O(window) rebuild. Matching
+  against several earlier viewpoints removes the bias of scan-to-scan matching towards zero motion
+  (the sensor-fixed ring pattern of the previous scan) and drift accumulates per keyframe, not per scan.
+- ``scan_to_scan``: against the previous scan.
 """
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.errors import InputError
+from pipeline.errors import ConfigError, InputError
 from pipeline.frames import LidarFrame
-from pipeline.transforms import apply, invert
+from pipeline.transforms import apply, invert, rotation_error_deg, translation_error_m
 from stages.registration.gicp import RegistrationConfig, register
-from stages.registration.pointset import PointSet, pointset_from_frame
+from stages.registration.pointset import PointSet, pointset_from_frame, prepare_pointset
 from stages.registration.voxel import voxel_downsample, voxel_keys
 
 MAP_CHANNELS = ("intensity", "r", "g", "b")
 COLOR_CHANNELS = ("r", "g", "b")
+ODOMETRY_MODES = ("scan_to_map", "scan_to_scan")
+OdometryMode = Literal["scan_to_map", "scan_to_scan"]
 
 
 @dataclass
@@ -151,13 +164,102 @@ def _map_points(
     return pointset.points_xyz, channels
 
 
+class LocalMap:
+    """Sliding window of keyframes (prepared points in the map frame) merged into one target PointSet.
+
+    The merged cloud is voxel-downsampled at the registration voxel size (descriptors averaged) and
+    gets covariances recomputed on it, so surfaces sampled by several viewpoints give well-shaped
+    planes (eq. 4-5) and MC-GICP descriptor statistics (eq. 6-10) over the whole window.
+    """
+
+    def __init__(self, config: RegistrationConfig, max_keyframes: int) -> None:
+        if max_keyframes < 1:
+            raise ConfigError(f"local_map_keyframes must be >= 1, got {max_keyframes}")
+        self.config = config
+        self._keyframes: deque[tuple[NDArray[np.float64], NDArray[np.float64]]] = deque(maxlen=max_keyframes)
+        self._names: tuple[str, ...] = ()
+        self._target: PointSet | None = None
+        self.T_map_last_keyframe: NDArray[np.float64] | None = None
+
+    @property
+    def n_keyframes(self) -> int:
+        return len(self._keyframes)
+
+    def add(self, scan: PointSet, T_map_scan: NDArray[np.float64]) -> None:
+        """Add a prepared scan at its map pose as a keyframe (drops the oldest beyond the window)."""
+        self._keyframes.append((apply(T_map_scan, scan.points_xyz), scan.channels.copy()))
+        self._names = scan.channel_names
+        self._target = None
+        self.T_map_last_keyframe = np.array(T_map_scan, dtype=np.float64)
+
+    def target(self) -> PointSet:
+        """The merged window as a registration target (built lazily after each keyframe)."""
+        if self._target is None:
+            points = np.concatenate([p for p, _ in self._keyframes])
+            desc = np.concatenate([c for _, c in self._keyframes])
+            channels = {name: desc[:, col] for col, name in enumerate(self._names)}
+            self._target = prepare_pointset(points, channels, self.config, frame_id="map")
+        return self._target
+
+
+def _orthonormalize(T: NDArray[np.float64]) -> NDArray[np.float64]:
+    """T with its rotation projected back onto SO(3) (chained products drift off it numerically)."""
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    out = np.array(T, dtype=np.float64)
+    out[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
+
+
+def relative_translation_drift(
+    T_map_est: NDArray[np.float64] | Sequence[NDArray[np.float64]],
+    T_map_true: NDArray[np.float64] | Sequence[NDArray[np.float64]],
+    segment_m: float,
+) -> float:
+    """KITTI-style relative translation drift (fraction, 0.01 = 1 %).
+
+    For every start scan i, take the first scan j whose travelled path from i (true poses) reaches
+    ``segment_m``; the segment error is the translation of inv(T_i^-1 T_j true) @ (T_i^-1 T_j est)
+    divided by the true path length i..j. The drift is the mean over all such segments. When the path
+    is shorter than ``segment_m`` it is |final position error| / path length (the end-point drift).
+
+    Args:
+        T_map_est, T_map_true: (n, 4, 4) estimated and true poses in a common map frame.
+        segment_m: segment length, m.
+    """
+    est = np.asarray(T_map_est, dtype=np.float64)
+    true = np.asarray(T_map_true, dtype=np.float64)
+    if est.shape != true.shape or est.ndim != 3 or est.shape[1:] != (4, 4) or est.shape[0] < 2:
+        raise InputError(f"need two matching (n >= 2, 4, 4) pose stacks, got {est.shape} and {true.shape}")
+    steps = np.linalg.norm(np.diff(true[:, :3, 3], axis=0), axis=1)
+    dist = np.concatenate([[0.0], np.cumsum(steps)])
+    errors = []
+    for i in range(est.shape[0]):
+        j = int(np.searchsorted(dist, dist[i] + segment_m, side="left"))
+        if j >= est.shape[0]:
+            break
+        rel_true = invert(true[i]) @ true[j]
+        rel_est = invert(est[i]) @ est[j]
+        errors.append(translation_error_m(rel_est, rel_true) / (dist[j] - dist[i]))
+    if errors:
+        return float(np.mean(errors))
+    if dist[-1] <= 0:
+        return 0.0
+    return translation_error_m(invert(true[0]) @ true[-1], invert(est[0]) @ est[-1]) / float(dist[-1])
+
+
 def run_odometry(
     scans: Iterable[PointSet | LidarFrame],
     config: RegistrationConfig | None = None,
     initial_motion: Sequence[NDArray[np.float64]] | None = None,
     voxel_map: VoxelMap | None = None,
+    *,
+    mode: OdometryMode = "scan_to_map",
+    local_map_keyframes: int = 10,
+    keyframe_distance_m: float = 0.5,
+    keyframe_rotation_deg: float = 5.0,
 ) -> list[OdometryStep]:
-    """Scan-to-scan odometry: register each scan to the previous one and chain the motions.
+    """Lidar odometry: register each scan to a local map (or to the previous scan) and chain the poses.
 
     Args:
         scans: LidarFrames (prepared with ``config``) or already prepared PointSets, in time order.
@@ -166,14 +268,24 @@ def run_odometry(
             for each pair is then inv(P[k-1]) @ P[k]. Without it: constant velocity.
         voxel_map: when given, every scan is inserted at its estimated pose (a failed pair keeps
             the guess and the map keeps going).
+        mode: ``scan_to_map`` (local keyframe map, see the module docstring) or ``scan_to_scan``.
+        local_map_keyframes: keyframes in the local map window (scan_to_map).
+        keyframe_distance_m, keyframe_rotation_deg: motion since the last keyframe that makes a new one.
 
     Returns:
-        One OdometryStep per scan.
+        One OdometryStep per scan; fitness, RMSE and iterations are those of the registration against
+        the local map (scan_to_map) or the previous scan.
 
     Raises:
         InputError: a scan cannot be prepared, or ``initial_motion`` is shorter than the scans.
+        ConfigError: unknown mode or a bad keyframe setting.
     """
     config = RegistrationConfig() if config is None else config
+    if mode not in ODOMETRY_MODES:
+        raise ConfigError(f"unknown odometry mode {mode!r}; expected one of {', '.join(ODOMETRY_MODES)}")
+    if not (keyframe_distance_m >= 0 and keyframe_rotation_deg >= 0):
+        raise ConfigError("keyframe distance and rotation must be >= 0")
+    local_map = LocalMap(config, local_map_keyframes) if mode == "scan_to_map" else None
     steps: list[OdometryStep] = []
     previous: PointSet | None = None
     T_map_prev = np.eye(4)
@@ -195,6 +307,8 @@ def run_odometry(
                 n_points=current.n_points,
                 dropped_points=current.dropped_points,
             )
+            if local_map is not None:
+                local_map.add(current, T_map_curr)
         else:
             if initial_motion is not None:
                 if index >= len(initial_motion):
@@ -202,9 +316,16 @@ def run_odometry(
                 guess = invert(np.asarray(initial_motion[index - 1])) @ np.asarray(initial_motion[index])
             else:
                 guess = velocity
-            result = register(current, previous, guess, config)
-            T_prev_curr = result.T_target_source if result.n_correspondences > 0 else guess
-            T_map_curr = T_map_prev @ T_prev_curr
+            if local_map is not None:
+                result = register(current, local_map.target(), T_map_prev @ guess, config)
+                ok = result.n_correspondences > 0
+                T_map_curr = result.T_target_source if ok else T_map_prev @ guess
+            else:
+                result = register(current, previous, guess, config)
+                ok = result.n_correspondences > 0
+                T_map_curr = T_map_prev @ (result.T_target_source if ok else guess)
+            T_map_curr = _orthonormalize(T_map_curr)
+            T_prev_curr = _orthonormalize(invert(T_map_prev) @ T_map_curr)
             velocity = T_prev_curr
             step = OdometryStep(
                 index,
@@ -220,6 +341,13 @@ def run_odometry(
                 current.n_points,
                 current.dropped_points,
             )
+            if local_map is not None and result.converged and local_map.T_map_last_keyframe is not None:
+                last = local_map.T_map_last_keyframe
+                if (
+                    translation_error_m(last, T_map_curr) >= keyframe_distance_m
+                    or rotation_error_deg(last, T_map_curr) >= keyframe_rotation_deg
+                ):
+                    local_map.add(current, T_map_curr)
         steps.append(step)
         if voxel_map is not None:
             points, channels = _map_points(scan, current)
@@ -229,4 +357,12 @@ def run_odometry(
     return steps
 
 
-__all__ = ["OdometryStep", "VoxelMap", "run_odometry", "voxel_downsample"]
+__all__ = [
+    "ODOMETRY_MODES",
+    "LocalMap",
+    "OdometryStep",
+    "VoxelMap",
+    "relative_translation_drift",
+    "run_odometry",
+    "voxel_downsample",
+]
