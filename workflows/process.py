@@ -24,7 +24,7 @@ from pipeline.pairing import raw_header_stamp_ns
 from pipeline.transforms import apply
 from readers.frames import CameraInfoTracker, camera_info_topic_for, decode_camera_image
 from readers.open import open_log
-from stages.colorize import colorize
+from stages.colorize import colorize, fill_unseen
 from stages.registration.pointset import PointSet
 from stages.sinks.atomic import atomic_path
 from stages.sinks.report import jpeg_overlay
@@ -120,13 +120,11 @@ def colorize_scan(frame: LidarFrame, source: ColorSource) -> LidarFrame:
         if image is not None and image.camera is not None:
             views.append((image.image, image.camera, np.array(T_rows)))
     points = np.asarray(frame.points_xyz, dtype=np.float64)
-    rgb, seen = colorize(points, views) if views else (np.zeros((points.shape[0], 3), np.uint8),
-                                                        np.zeros(points.shape[0], bool))  # fmt: skip
-    rgb = rgb.astype(np.float32)
-    if seen.any():
-        rgb[~seen] = rgb[seen].mean(axis=0)
+    if views:
+        rgb, seen = colorize(points, views)
     else:
-        rgb[:] = 128.0
+        rgb, seen = np.zeros((points.shape[0], 3), np.uint8), np.zeros(points.shape[0], bool)
+    rgb = fill_unseen(rgb, seen).astype(np.float32)
     channels = dict(frame.channels)
     channels.update(r=rgb[:, 0], g=rgb[:, 1], b=rgb[:, 2])
     frame.channels = channels

@@ -103,23 +103,26 @@ def map_top_image(
 ) -> NDArray[np.uint8]:
     """Bird's-eye view of a map (x right, y up), coloured by intensity or height, trajectory in red."""
     pts = np.asarray(points_xyz, dtype=np.float64).reshape(-1, 3)
-    canvas = np.zeros((size_px, size_px, 3), np.uint8)
     if pts.shape[0] == 0:
-        return canvas
+        return np.zeros((size_px, size_px, 3), np.uint8)
     xy = pts[:, :2]
-    lo, hi = np.percentile(xy, 0.5, axis=0), np.percentile(xy, 99.5, axis=0)
+    lo, hi = np.percentile(xy, 1.0, axis=0), np.percentile(xy, 99.0, axis=0)
     if trajectory_xyz is not None and len(trajectory_xyz):
         tr = np.asarray(trajectory_xyz)[:, :2]
         lo, hi = np.minimum(lo, tr.min(axis=0)), np.maximum(hi, tr.max(axis=0))
-    scale = (size_px - 20) / max(float(np.max(hi - lo)), 1e-6)
+    extent = np.maximum(hi - lo, 1e-6)
+    scale = (size_px - 20) / float(np.max(extent))
+    width = int(np.clip(extent[0] * scale + 20, 200, size_px))
+    height = int(np.clip(extent[1] * scale + 20, 200, size_px))
+    canvas = np.zeros((height, width, 3), np.uint8)
 
     def to_px(p: NDArray[np.float64]) -> NDArray[np.int64]:
         u = (p[:, 0] - lo[0]) * scale + 10
-        v = size_px - 10 - (p[:, 1] - lo[1]) * scale
+        v = height - 10 - (p[:, 1] - lo[1]) * scale
         return np.stack([u, v], axis=1).round().astype(np.int64)
 
     px = to_px(xy)
-    inside = (px[:, 0] >= 0) & (px[:, 0] < size_px) & (px[:, 1] >= 0) & (px[:, 1] < size_px)
+    inside = (px[:, 0] >= 0) & (px[:, 0] < width) & (px[:, 1] >= 0) & (px[:, 1] < height)
     values = pts[:, 2] if intensity is None else np.asarray(intensity, dtype=np.float64)
     vlo, vhi = np.percentile(values, 2), np.percentile(values, 98)
     shade = np.clip((values - vlo) / max(vhi - vlo, 1e-9), 0, 1)
