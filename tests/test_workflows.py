@@ -1,0 +1,165 @@
+"""End-to-end workflows on a small simulated log: calibrate, map, process; the Parquet contract of
+DESIGN.md; the write-back tf equals calibration.parquet; CLI errors are one line with the right code."""
+
+from __future__ import annotations
+
+import itertools
+import json
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from pipeline.transforms import from_quat, invert, rotation_error_deg, translation_error_m
+from readers.decode import decode_tf
+from readers.open import open_log
+from workflows.cli import main
+
+SMALL_CONFIG = """
+[calibration]
+frames = 3
+particles = 60
+iterations = 30
+feature = "range"
+
+[mapping]
+voxel_m = 0.4
+"""
+
+CALIBRATION_COLUMNS = {
+    "lidar_topic": pa.string(), "camera_topic": pa.string(), "lidar_frame": pa.string(),
+    "camera_frame": pa.string(), "metric": pa.string(), "feature": pa.string(),
+    "tx_m": pa.float64(), "ty_m": pa.float64(), "tz_m": pa.float64(), "qx": pa.float64(), "qy": pa.float64(),
+    "qz": pa.float64(), "qw": pa.float64(), "roll_deg": pa.float64(), "pitch_deg": pa.float64(),
+    "yaw_deg": pa.float64(), "score": pa.float64(), "initial_score": pa.float64(), "frames_used": pa.int64(),
+    "runtime_s": pa.float64(),
+}  # fmt: skip
+TRAJECTORY_COLUMNS = {
+    "stamp_ns": pa.int64(), "tx_m": pa.float64(), "ty_m": pa.float64(), "tz_m": pa.float64(),
+    "qx": pa.float64(), "qy": pa.float64(), "qz": pa.float64(), "qw": pa.float64(), "fitness": pa.float64(),
+    "rmse_m": pa.float64(), "iterations": pa.int32(),
+}  # fmt: skip
+MAP_COLUMNS = {"x_m": pa.float32(), "y_m": pa.float32(), "z_m": pa.float32(), "intensity": pa.float32(),
+               "r": pa.uint8(), "g": pa.uint8(), "b": pa.uint8()}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def sim_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("sim")
+    log = root / "street.mcap"
+    code = main(["simulate", str(log), "--frames", "6", "--beams", "32", "--columns", "1024",
+                 "--image-size", "640x360", "--seed", "3", "-q"])  # fmt: skip
+    assert code == 0
+    (root / "small.toml").write_text(SMALL_CONFIG)
+    return log
+
+
+@pytest.fixture(scope="module")
+def processed(sim_log: Path) -> Path:
+    out = sim_log.parent / "out"
+    code = main(["process", str(sim_log), "--out", str(out), "--config", str(sim_log.parent / "small.toml"),
+                 "--workers", "0", "-q"])  # fmt: skip
+    assert code == 0
+    return out
+
+
+def _schema(path: Path) -> dict[str, pa.DataType]:
+    return {f.name: f.type for f in pq.read_schema(path)}
+
+
+def test_parquet_contract(processed: Path) -> None:
+    assert _schema(processed / "calibration.parquet") == CALIBRATION_COLUMNS
+    assert _schema(processed / "trajectory.parquet") == TRAJECTORY_COLUMNS
+    assert _schema(processed / "map.parquet") == MAP_COLUMNS
+    frames = _schema(processed / "frames.parquet")
+    assert {"topic", "stamp_ns", "n_points", "width", "height", "score_initial", "score_final"} <= set(frames)
+    pandas = pytest.importorskip("pandas")
+    calib = pandas.read_parquet(processed / "calibration.parquet")
+    assert len(calib) == 1 and calib.loc[0, "frames_used"] == 3
+    q = calib.loc[0, ["qx", "qy", "qz", "qw"]].to_numpy(dtype=float)
+    assert abs(np.linalg.norm(q) - 1) < 1e-9
+
+
+def test_process_outputs_are_complete(processed: Path, sim_log: Path) -> None:
+    names = {p.name for p in processed.iterdir()}
+    assert {"calibration.parquet", "frames.parquet", "trajectory.parquet", "map.parquet", "config.toml",
+            "result.json", "street.fleetcal.mcap", "report"} <= names  # fmt: skip
+    assert not [n for n in names if ".tmp" in n]
+    report = {p.name for p in (processed / "report").iterdir()}
+    assert {"map_top.png", "overlay_before_camera_0_image_raw.png", "overlay_after_camera_0_image_raw.png"} <= report
+    result = json.loads((processed / "result.json").read_text())
+    assert result["mapping"]["scans"] == 6
+    trajectory = pq.read_table(processed / "trajectory.parquet").to_pandas()
+    truth = json.loads(sim_log.with_name("street.truth.json").read_text())
+    T_true = [np.asarray(t["T_map_lidar"]) for t in truth["trajectory"]]
+    T_est = [from_quat(r[["tx_m", "ty_m", "tz_m"]].to_numpy(float), r[["qx", "qy", "qz", "qw"]].to_numpy(float))
+             for _, r in trajectory.iterrows()]  # fmt: skip
+    assert len(T_est) == len(T_true)
+    final_error = translation_error_m(T_est[-1], T_true[-1])
+    path = sum(translation_error_m(a, b) for a, b in itertools.pairwise(T_true))
+    assert path > 2.0
+    assert final_error / path < 0.02
+
+
+def test_writeback_tf_equals_calibration_table(processed: Path, sim_log: Path) -> None:
+    calib = pq.read_table(processed / "calibration.parquet").to_pylist()[0]
+    T_camera_lidar = from_quat([calib["tx_m"], calib["ty_m"], calib["tz_m"]],
+                               [calib["qx"], calib["qy"], calib["qz"], calib["qw"]])  # fmt: skip
+    with open_log(processed / "street.fleetcal.mcap") as out, open_log(sim_log) as original:
+        assert out.topics["/lidar/points"].count == original.topics["/lidar/points"].count
+        assert {"/fleetcal/map", "/fleetcal/trajectory", "/fleetcal/overlay/camera_0/image_raw"} <= set(out.topics)
+        found = []
+        for raw in out.messages(topics=["/tf_static"]):
+            for _, parent, child, T in decode_tf(out.deserialize(raw)):
+                if (parent, child) == (calib["lidar_frame"], calib["camera_frame"]):
+                    found.append(T)
+    assert found, "calibrated tf missing from the write-back"
+    assert np.allclose(found[-1], invert(T_camera_lidar), atol=1e-9)
+
+
+def test_calibrate_and_map_commands(sim_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "calib"
+    code = main(["calibrate", str(sim_log), "--config", str(sim_log.parent / "small.toml"), "--out", str(out),
+                 "--json", "-q", "--no-report"])  # fmt: skip
+    assert code == 0
+    result = json.loads(capsys.readouterr().out)
+    pair = result["pairs"][0]
+    truth = json.loads(sim_log.with_name("street.truth.json").read_text())["pairs"][0]
+    T_in_log = np.asarray(truth["T_camera_lidar_in_log"])
+    assert np.allclose(pair["T_camera_lidar"], np.asarray(pair["T_camera_lidar"]))
+    assert rotation_error_deg(np.asarray(pair["T_camera_lidar"]), T_in_log) == pytest.approx(pair["change_deg"])
+    assert pair["score"] >= pair["initial_score"]
+    code = main(["map", str(sim_log), "--channels", "none", "--workers", "0", "--out", str(tmp_path / "m"), "--json",
+                 "-q"])  # fmt: skip
+    assert code == 0
+    mapped = json.loads(capsys.readouterr().out)
+    assert mapped["scans"] == 6 and mapped["map_points"] > 1000 and mapped["channels"] == "none"
+
+
+@pytest.mark.parametrize(
+    ("args", "code", "message"),
+    [
+        (["map", "{log}", "--channels", "rainbow", "--out", "{tmp}"], 2, "unknown --channels 'rainbow'"),
+        (["calibrate", "{log}", "--initial", "1 2 3", "--out", "{tmp}"], 2, "--initial must be 6"),
+        (["calibrate", "{log}", "--camera", "/nope", "--out", "{tmp}"], 1, "camera topic /nope is not in the log"),
+        (["calibrate", "{log}", "--lidar", "/camera_0/image_raw", "--out", "{tmp}", "--frames", "1"], 1,
+         "expected sensor_msgs/msg/PointCloud2"),
+        (["calibrate", "{log}", "--initial", "0 0 -50 0 0 0", "--frames", "1", "--particles", "10", "--out", "{tmp}"],
+         1, "sees no lidar points"),
+        (["map", "{tmp}/missing.mcap", "--out", "{tmp}"], 1, "missing.mcap"),
+        (["calibrate", "{log}"], 2, "--out"),
+    ],
+)  # fmt: skip
+def test_cli_errors_are_one_line(
+    sim_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], code: int, message: str
+) -> None:
+    argv = [a.format(log=sim_log, tmp=tmp_path) for a in args] + ["-q"]
+    try:
+        got = main(argv)
+    except SystemExit as exit_:
+        got = int(exit_.code or 0)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert got == code
+    assert len(err) == 1 and err[0].startswith("error: ") and message in err[0], err
