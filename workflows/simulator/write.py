@@ -1,0 +1,356 @@
+"""Simulate a drive and write it as a log (MCAP, ROS 1 bag or ROS 2 bag folder) plus its truth file.
+
+Topics: ``/lidar/points`` (PointCloud2 x, y, z, intensity (float32), ring (uint16), time (float32 s after
+the stamp); frame ``lidar``; 10 Hz), ``/camera_N/image_raw`` (Image rgb8) or
+``/camera_N/image_raw/compressed`` (CompressedImage jpeg), ``/camera_N/camera_info``, ``/tf`` (odometry
+``odom -> base_link`` at 50 Hz and at every sensor stamp) and ``/tf_static`` (``base_link -> lidar`` and
+``lidar -> camera_N_optical`` from the PERTURBED calibration). Sensor time starts at a fixed epoch and
+nothing depends on the wall clock, so the same options give byte-identical files.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.errors import ConfigError, ProcessingError
+from pipeline.progress import Progress
+from pipeline.transforms import invert
+from stages.sinks import ros_messages as rm
+from stages.sinks.log_writer import LogWriter
+from workflows.simulator.camera import SimCamera, fisheye_camera, pinhole_camera, render
+from workflows.simulator.lidar import SUPPORTED_BEAMS, LidarModel, LidarScan, simulate_scan
+from workflows.simulator.motion import LoopMotion
+from workflows.simulator.raycast import build_grid
+from workflows.simulator.scene import SCENES, build_scene
+from workflows.simulator.truth import (
+    BASE_FRAME,
+    LIDAR_FRAME,
+    LIDAR_TOPIC,
+    MAX_CAMERAS,
+    ODOM_FRAME,
+    build_rig,
+    build_truth,
+    camera_frame,
+    camera_topics,
+    truth_path_for,
+    write_truth,
+)
+
+START_NS = 1_700_000_000_000_000_000
+"""Sensor time of the first scan (fixed: no wall clock)."""
+TF_PERIOD_NS = 20_000_000
+PREFETCH_IMAGES = 2
+DEFAULT_SPEED_M_S = {"street": 8.0, "corridor": 1.5, "open": 5.0}
+LogFormat = Literal["mcap", "ros1", "ros2"]
+
+
+@dataclass(frozen=True)
+class SimulationOptions:
+    """What to simulate. ``speed_m_s`` None: the scene's default (street 8, corridor 1.5, open 5 m/s).
+
+    ``deskew`` True (default): every point of a scan is cast from the vehicle pose at the scan stamp (no
+    motion distortion); False: each column is cast from the pose at its firing time and reported in the
+    lidar frame of that time, as a moving real sensor does (the ``time`` field then matters).
+    """
+
+    fmt: LogFormat = "mcap"
+    frames: int = 20
+    scene: str = "street"
+    beams: int = 64
+    columns: int = 1024
+    cameras: int = 1
+    fisheye: bool = False
+    compressed: bool = False
+    organized: bool = False
+    speed_m_s: float | None = None
+    perturb_deg: float = 2.0
+    perturb_m: float = 0.1
+    seed: int = 0
+    width: int = 1280
+    height: int = 720
+    camera_rate_hz: float = 10.0
+    lidar_rate_hz: float = 10.0
+    deskew: bool = True
+
+    def validate(self) -> None:
+        """Raise ConfigError with a one-line message for any nonsense value."""
+        checks = [
+            (
+                self.fmt in ("mcap", "ros1", "ros2"),
+                f"unknown format {self.fmt!r} (choose from mcap, ros1, ros2)",
+            ),
+            (self.scene in SCENES, f"unknown scene {self.scene!r} (choose from {', '.join(SCENES)})"),
+            (self.frames >= 1, f"frames must be at least 1, got {self.frames}"),
+            (
+                self.beams in SUPPORTED_BEAMS,
+                f"beams must be one of {', '.join(map(str, SUPPORTED_BEAMS))}, got {self.beams}",
+            ),
+            (64 <= self.columns <= 4096, f"columns must be in 64..4096, got {self.columns}"),
+            (1 <= self.cameras <= MAX_CAMERAS, f"cameras must be in 1..{MAX_CAMERAS}, got {self.cameras}"),
+            (
+                self.speed_m_s is None or (np.isfinite(self.speed_m_s) and 0 <= self.speed_m_s <= 60),
+                f"speed must be in 0..60 m/s, got {self.speed_m_s}",
+            ),
+            (
+                np.isfinite(self.perturb_deg) and 0 <= self.perturb_deg <= 45,
+                f"perturb-deg must be in 0..45, got {self.perturb_deg}",
+            ),
+            (
+                np.isfinite(self.perturb_m) and 0 <= self.perturb_m <= 2,
+                f"perturb-m must be in 0..2, got {self.perturb_m}",
+            ),
+            (0 <= self.seed < 2**63, f"seed must be a non-negative integer, got {self.seed}"),
+            (
+                16 <= self.width <= 8192 and 16 <= self.height <= 8192,
+                f"image size must be 16..8192 pixels a side, got {self.width}x{self.height}",
+            ),
+            (
+                0.5 <= self.camera_rate_hz <= 100 and 1 <= self.lidar_rate_hz <= 50,
+                "sensor rates out of range",
+            ),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise ConfigError(message)
+
+    @property
+    def speed(self) -> float:
+        return DEFAULT_SPEED_M_S[self.scene] if self.speed_m_s is None else float(self.speed_m_s)
+
+
+@dataclass
+class SimulationResult:
+    """What ``simulate_log`` wrote."""
+
+    log_path: str
+    truth_path: str
+    format: str
+    scene: str
+    seed: int
+    lidar_scans: int
+    camera_images: int
+    messages: int
+    duration_s: float
+    distance_m: float
+    runtime_s: float
+    lidar_topic: str
+    camera_topics: list[str]
+
+    def to_json(self) -> dict[str, object]:
+        return asdict(self)
+
+
+def _event_times(opts: SimulationOptions) -> tuple[list[int], list[list[int]], list[float]]:
+    """Scan stamps, per-camera image stamps and per-camera phases (ms after the scan stamps)."""
+    scan_period = round(1e9 / opts.lidar_rate_hz)
+    scans = [START_NS + k * scan_period for k in range(opts.frames)]
+    end = START_NS + opts.frames * scan_period
+    rng = np.random.default_rng(np.random.SeedSequence([opts.seed, 0xCA4]))
+    phases_ms = [float(np.round(rng.uniform(10.0, 30.0), 3)) for _ in range(opts.cameras)]
+    cam_period = round(1e9 / opts.camera_rate_hz)
+    images = []
+    for phase in phases_ms:
+        first = START_NS + round(phase * 1e6)
+        images.append(list(range(first, end, cam_period)))
+    return scans, images, phases_ms
+
+
+def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet: bool = True) -> SimulationResult:
+    """Simulate ``opts`` and write the log at ``out`` (file; folder for ``ros2``) and its truth file."""
+    opts.validate()
+    started = time.monotonic()
+    out_path = Path(out)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    scene = build_scene(opts.scene, opts.seed)
+    grid = build_grid(scene.triangles)
+    motion = LoopMotion(scene.route, opts.speed)
+    rig = build_rig(opts.cameras, scene.lidar_height_m, opts.perturb_deg, opts.perturb_m, opts.seed)
+    lidar = LidarModel(beams=opts.beams, columns=opts.columns, period_s=1.0 / opts.lidar_rate_hz, seed=opts.seed)
+    make_model = fisheye_camera if opts.fisheye else pinhole_camera
+    cameras = [
+        SimCamera(make_model(opts.width, opts.height), spectral_mix=min(0.15 * i, 0.6)) for i in range(opts.cameras)
+    ]
+    scans, images, phases_ms = _event_times(opts)
+    profile: rm.Profile = "ros1" if opts.fmt == "ros1" else "ros2"
+
+    def t_s(stamp_ns: int) -> float:
+        return (stamp_ns - START_NS) / 1e9
+
+    T_world_odom = motion.T_world_base(0.0)
+    T_odom_world = invert(T_world_odom)
+    T_world_lidar0 = T_world_odom @ rig.T_base_lidar
+    T_lidar0_world = invert(T_world_lidar0)
+
+    # (log_time_ns, order, kind, index, sub) -- order breaks ties deterministically
+    events: list[tuple[int, int, str, int, int]] = [(START_NS, 0, "tf_static", 0, 0)]
+    tf_stamps = set(range(START_NS, scans[-1] + round(1e9 / opts.lidar_rate_hz) + 1, TF_PERIOD_NS))
+    tf_stamps.update(scans)
+    for cam_stamps in images:
+        tf_stamps.update(cam_stamps)
+    events += [(s + 1_000_000, 1, "tf", s, 0) for s in sorted(tf_stamps)]
+    scan_latency = round(1e9 / opts.lidar_rate_hz) + 2_000_000
+    events += [(s + scan_latency, 2, "lidar", k, 0) for k, s in enumerate(scans)]
+    for i, cam_stamps in enumerate(images):
+        events += [(s + 8_000_000, 3 + i, "camera", i, j) for j, s in enumerate(cam_stamps)]
+    events.sort()
+
+    def scan_at(k: int) -> LidarScan:
+        rng = np.random.default_rng(np.random.SeedSequence([opts.seed, 0x11DA, k]))
+        if opts.deskew:
+            T = motion.T_world_base(t_s(scans[k])) @ rig.T_base_lidar
+        else:
+            T = motion.T_world_base_many(t_s(scans[k]) + lidar.column_times_s()) @ rig.T_base_lidar
+        return simulate_scan(scene, grid, lidar, T, rng)
+
+    def render_job(index: int, sub: int) -> NDArray[np.uint8]:
+        stamp = images[index][sub]
+        T_world_cam = motion.T_world_base(t_s(stamp)) @ rig.T_base_cameras[index]
+        rng = np.random.default_rng(np.random.SeedSequence([opts.seed, 0xC0, index, sub]))
+        exposure = 1.0 + 0.05 * np.sin(0.7 * t_s(stamp) + index)
+        return render(scene, grid, cameras[index], T_world_cam, rng, exposure_scale=exposure)
+
+    # camera images are rendered one or two events ahead on a helper thread (the kernels release the GIL),
+    # so rendering overlaps message building and compression; each image has its own seeded noise
+    camera_jobs = [(index, sub) for _, _, kind, index, sub in events if kind == "camera"]
+    pending: dict[int, Future[NDArray[np.uint8]]] = {}
+    next_job = 0
+
+    def next_image(index: int, sub: int) -> NDArray[np.uint8]:
+        nonlocal next_job
+        if camera_jobs[next_job] != (index, sub):
+            raise ProcessingError(f"camera event {(index, sub)} out of order (expected {camera_jobs[next_job]})")
+        for q in range(next_job, min(next_job + PREFETCH_IMAGES, len(camera_jobs))):
+            if q not in pending:
+                pending[q] = prefetch.submit(render_job, *camera_jobs[q])
+        next_job += 1
+        return pending.pop(next_job - 1).result()
+
+    n_messages = 0
+    n_images = 0
+    progress = Progress(len(scans) + sum(map(len, images)), desc="simulate", quiet=quiet)
+    with (
+        ThreadPoolExecutor(max_workers=1, thread_name_prefix="fleetcal-render") as prefetch,
+        LogWriter(out_path, opts.fmt) as writer,
+    ):
+        for log_ns, _, kind, index, sub in events:
+            if kind == "tf_static":
+                transforms = [(START_NS, BASE_FRAME, LIDAR_FRAME, rig.T_base_lidar)]
+                transforms += [
+                    (START_NS, LIDAR_FRAME, camera_frame(i), invert(T)) for i, T in enumerate(rig.T_camera_lidar_in_log)
+                ]
+                writer.write("/tf_static", "tf2_msgs/msg/TFMessage", log_ns, rm.tf_message(transforms, profile))
+            elif kind == "tf":
+                T_odom_base = T_odom_world @ motion.T_world_base(t_s(index))
+                msg = rm.tf_message([(index, ODOM_FRAME, BASE_FRAME, T_odom_base)], profile)
+                writer.write("/tf", "tf2_msgs/msg/TFMessage", log_ns, msg)
+            elif kind == "lidar":
+                scan = scan_at(index)
+                if opts.organized:
+                    B, C = scan.valid.shape
+                    channels: dict[str, NDArray[Any]] = {
+                        "intensity": np.nan_to_num(scan.intensity.ravel(), nan=0.0),
+                        "ring": scan.ring.ravel(),
+                        "time": scan.time_s.ravel(),
+                    }
+                    msg = rm.pointcloud2(
+                        scans[index],
+                        LIDAR_FRAME,
+                        scan.points_xyz.reshape(-1, 3),
+                        channels,
+                        organized_shape=(B, C),
+                        profile=profile,
+                    )
+                else:
+                    points, chans = scan.unorganized()
+                    msg = rm.pointcloud2(scans[index], LIDAR_FRAME, points, chans, profile=profile)
+                writer.write(LIDAR_TOPIC, "sensor_msgs/msg/PointCloud2", log_ns, msg)
+                progress.update()
+            else:
+                stamp = images[index][sub]
+                cam = cameras[index]
+                img = next_image(index, sub)
+                image_topic, info_topic = camera_topics(index, opts.compressed)
+                frame = camera_frame(index)
+                writer.write(
+                    info_topic,
+                    "sensor_msgs/msg/CameraInfo",
+                    log_ns - 1000,
+                    rm.camera_info(stamp, frame, cam.model, profile),
+                )
+                if opts.compressed:
+                    msg = rm.compressed_image(stamp, frame, img, "jpeg", 90, profile)
+                    writer.write(image_topic, "sensor_msgs/msg/CompressedImage", log_ns, msg)
+                else:
+                    writer.write(
+                        image_topic,
+                        "sensor_msgs/msg/Image",
+                        log_ns,
+                        rm.image(stamp, frame, img, "rgb8", profile),
+                    )
+                n_messages += 1
+                n_images += 1
+                progress.update()
+            n_messages += 1
+    progress.close()
+
+    T_map_lidar = np.stack([T_lidar0_world @ motion.T_world_base(t_s(s)) @ rig.T_base_lidar for s in scans])
+    extra = {
+        "frames": opts.frames,
+        "lidar": {
+            "beams": opts.beams,
+            "columns": opts.columns,
+            "organized": opts.organized,
+            "deskewed": opts.deskew,
+            "rate_hz": opts.lidar_rate_hz,
+        },
+        "cameras": [
+            {
+                "camera_topic": camera_topics(i, opts.compressed)[0],
+                "camera_info_topic": camera_topics(i, opts.compressed)[1],
+                "phase_ms": phases_ms[i],
+                "model": cameras[i].model.distortion_model,
+                "spectral_mix": cameras[i].spectral_mix,
+            }
+            for i in range(opts.cameras)
+        ],
+        "speed_m_s": opts.speed,
+        "note": "T_camera_lidar is exact; T_camera_lidar_in_log is it turned by perturb_deg about a random "
+        "axis and moved by perturb_m in a random direction",
+        "perturb_deg": opts.perturb_deg,
+        "perturb_m": opts.perturb_m,
+    }
+    truth = build_truth(
+        rig=rig,
+        compressed=opts.compressed,
+        scan_stamps_ns=scans,
+        T_map_lidar=T_map_lidar,
+        scene=opts.scene,
+        seed=opts.seed,
+        fmt=opts.fmt,
+        extra=extra,
+    )
+    truth_path = write_truth(truth_path_for(out_path), truth)
+    duration_s = (scans[-1] - START_NS) / 1e9
+    return SimulationResult(
+        log_path=str(out_path),
+        truth_path=str(truth_path),
+        format=opts.fmt,
+        scene=opts.scene,
+        seed=opts.seed,
+        lidar_scans=len(scans),
+        camera_images=n_images,
+        messages=n_messages,
+        duration_s=duration_s,
+        distance_m=opts.speed * duration_s,
+        runtime_s=time.monotonic() - started,
+        lidar_topic=LIDAR_TOPIC,
+        camera_topics=[camera_topics(i, opts.compressed)[0] for i in range(opts.cameras)],
+    )
