@@ -268,12 +268,15 @@ def test_demo_runs_and_reports_initial_error(tmp_path: Path, capsys: pytest.Capt
             "--columns",
             "512",
             "--image-size",
-            "160x90",
+            "320x180",
+            "--workers",
+            "0",
             "-q",
         ]
     )
     out = capsys.readouterr().out
     assert rc == 0
     assert "2.00 deg" in out and "10.00 cm" in out  # initial (log tf) vs truth, default perturbation
-    assert "not built yet" in out
+    assert "process    ok" in out
+    assert (tmp_path / "out" / "calibration.parquet").is_file() and (tmp_path / "out" / "result.json").is_file()
     assert (tmp_path / "demo.mcap").is_file() and (tmp_path / "demo.truth.json").is_file()

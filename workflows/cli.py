@@ -11,6 +11,7 @@ import argparse
 import importlib
 import json
 import logging
+import os
 import sys
 from collections.abc import Sequence
 from typing import Any
@@ -94,6 +95,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     level = logging.DEBUG if args.verbose else logging.WARNING
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     if not args.verbose:
+        os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "error")
         for noisy in ("distributed", "dask", "bokeh", "tornado", "numba"):
             logging.getLogger(noisy).setLevel(logging.ERROR)
     try:

@@ -3,9 +3,8 @@ it and print truth vs initial vs estimate.
 
 Steps (one function each, run in order; each returns a ``StepOutcome``): ``step_simulate`` (write the
 log + truth), ``step_inspect`` (open the log, detect lidar/cameras, read the tf tree for the initial
-calibration), ``step_calibrate`` and ``step_map``. Calibration and mapping recipes are not wired in yet;
-those steps report "not built yet" and the table shows '-' for the estimates. Defaults keep the whole
-demo under 90 s on 2 cores.
+calibration) and ``step_process`` (the main job: calibrate, colourise, MC-GICP map, write back).
+Defaults keep the whole demo under 90 s on 2 cores.
 """
 
 from __future__ import annotations
@@ -39,6 +38,7 @@ EXAMPLES = """examples:
 
 DEMO_FRAMES = 20
 DEMO_SIZE = "960x540"
+DEMO_CALIBRATION_FRAMES = 4
 
 
 @dataclass
@@ -100,27 +100,37 @@ def step_inspect(state: DemoState) -> StepOutcome:
     )
 
 
-def step_calibrate(state: DemoState) -> StepOutcome:
-    """Calibrate every lidar/camera pair; fills ``state.T_camera_lidar_estimate`` (camera topic -> 4x4).
+def step_process(state: DemoState) -> StepOutcome:
+    """Run the main job (``fleetcal process``: calibrate, colourise, map, write back) on the log and
+    keep its estimates: ``state.T_camera_lidar_estimate`` and ``state.trajectory_estimate``."""
+    import pyarrow.parquet as pq
 
-    Plug the calibration recipe in here (``fleetcal calibrate LOG --out DIR/calibration``).
-    """
-    return StepOutcome("calibrate", "not built yet", "lidar-camera calibration is not wired into the demo yet")
+    from pipeline.config import load_config
+    from pipeline.transforms import from_quat
+    from workflows.process import process_log
 
-
-def step_map(state: DemoState) -> StepOutcome:
-    """Map with MC-GICP; fills ``state.trajectory_estimate`` ((stamp_ns, T_map_lidar) per scan).
-
-    Plug the mapping recipe in here (``fleetcal map LOG --out DIR/map``).
-    """
-    return StepOutcome("map", "not built yet", "MC-GICP mapping is not wired into the demo yet")
+    overrides = {"calibration.frames": DEMO_CALIBRATION_FRAMES, "mapping.channels": "combined",
+                 "engine.workers": getattr(state.args, "workers", None)}  # fmt: skip
+    config = load_config(getattr(state.args, "config", None), overrides=overrides)
+    out = state.out_dir / "out"
+    result = process_log([str(state.log_path)], out, config, workers=config.engine.workers,
+                         scheduler=getattr(state.args, "scheduler", None), quiet=state.args.quiet)  # fmt: skip
+    for pair in result.calibrations:
+        state.T_camera_lidar_estimate[pair["camera_topic"]] = np.asarray(pair["T_camera_lidar"])
+    rows = pq.read_table(out / "trajectory.parquet").to_pylist() if result.mapping else []
+    state.trajectory_estimate = [
+        (int(r["stamp_ns"]), from_quat([r["tx_m"], r["ty_m"], r["tz_m"]], [r["qx"], r["qy"], r["qz"], r["qw"]]))
+        for r in rows
+    ]
+    verdicts = ", ".join(f"{c['camera_topic']} {c['verdict']}" for c in result.calibrations)
+    times = ", ".join(f"{k} {v:.0f} s" for k, v in result.stage_times_s.items())
+    return StepOutcome("process", "ok", f"{verdicts}; {times}; outputs in {out}")
 
 
 STEPS: tuple[Callable[[DemoState], StepOutcome], ...] = (
     step_simulate,
     step_inspect,
-    step_calibrate,
-    step_map,
+    step_process,
 )
 
 
