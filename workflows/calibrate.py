@@ -197,12 +197,14 @@ def collect_frames(
     c = config.calibration
     stats = PairingStats()
     out = _Collected([], [], [], [], "", "", False)
+    sparse = 0
     for lidar, camera in iter_pairs(
         reader, lidar_topic, camera_topic, config.io.pairing_tolerance_ns, max_pairs=c.frames, stats=stats
     ):
         out.lidar_frame, out.camera_frame = lidar.frame_id.lstrip("/"), camera.frame_id.lstrip("/")
         if lidar.n_points < c.min_points:
             log.warning("skipping scan at %d: %d points", lidar.stamp_ns, lidar.n_points)
+            sparse += 1
             continue
         motion = (
             _motion(tree, out.lidar_frame, lidar.stamp_ns, camera.stamp_ns) if c.motion_compensation else None
@@ -215,6 +217,11 @@ def collect_frames(
         if progress is not None:
             progress.update()
     if not out.frames:
+        if sparse:
+            raise InputError(
+                f"no valid points: all {sparse} paired scans on {lidar_topic} have fewer than "
+                f"{c.min_points} valid points (empty or NaN clouds)"
+            )
         if stats.lidar_frames == 0 or stats.camera_frames == 0:
             raise InputError(f"no messages on {lidar_topic if stats.lidar_frames == 0 else camera_topic}")
         raise InputError(
