@@ -62,4 +62,6 @@ def run(args: argparse.Namespace) -> int:
               f"{len(s['failed_pairs'])} failed and {len(s['degenerate_pairs'])} degenerate pairs, "
               f"{s['map_points']} map points")  # fmt: skip
         print(f"wrote {out_dir}/trajectory.parquet, map.parquet, report/map_top.png", file=sys.stderr)
+    if outcome.scans_skipped and not args.quiet:
+        print(f"warning: skipped {outcome.scans_skipped} unusable scans (empty, NaN or undecodable)", file=sys.stderr)
     return 0
