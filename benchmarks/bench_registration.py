@@ -157,6 +157,20 @@ def _median_ms(fn: Callable[[], Any], repeats: int) -> tuple[float, Any]:
     return statistics.median(times), out
 
 
+def _row(pair: Pair, method: str, prep_ms: float, align_ms: float, T: NDArray[np.float64], iterations: int) -> Row:
+    """A table row: errors of ``T`` (T_target_source) against the pair's truth, the last run's minimum time."""
+    return Row(
+        pair.name,
+        method,
+        prep_ms,
+        align_ms,
+        _LAST_MIN_MS[0],
+        translation_error_m(T, pair.T_target_source) * 100,
+        rotation_error_deg(T, pair.T_target_source),
+        iterations,
+    )
+
+
 def bench_fleetcal(pair: Pair, args: argparse.Namespace) -> list[Row]:
     from stages.registration import RegistrationConfig, prepare_pointset, register
 
@@ -190,16 +204,7 @@ def bench_fleetcal(pair: Pair, args: argparse.Namespace) -> list[Row]:
             label += "" if robust == "none" else f" ({robust})"
             T = result.T_target_source
             rows.append(
-                Row(
-                    pair.name,
-                    label,
-                    prep_ms,
-                    align_ms,
-                    _LAST_MIN_MS[0],
-                    translation_error_m(T, pair.T_target_source) * 100,
-                    rotation_error_deg(T, pair.T_target_source),
-                    result.iterations,
-                )
+                _row(pair, label, prep_ms, align_ms, T, result.iterations)
             )
     return rows
 
@@ -235,16 +240,7 @@ def bench_small_gicp(pair: Pair, args: argparse.Namespace) -> list[Row]:
     )
     T = result.T_target_source
     return [
-        Row(
-            pair.name,
-            "small_gicp GICP",
-            prep_ms,
-            align_ms,
-            _LAST_MIN_MS[0],
-            translation_error_m(T, pair.T_target_source) * 100,
-            rotation_error_deg(T, pair.T_target_source),
-            result.iterations,
-        )
+        _row(pair, "small_gicp GICP", prep_ms, align_ms, T, result.iterations)
     ]
 
 
@@ -300,16 +296,7 @@ def bench_open3d(pair: Pair, args: argparse.Namespace) -> list[Row]:
         align_ms, result = _median_ms(fn, args.repeats)
         T = np.asarray(result.transformation)
         rows.append(
-            Row(
-                pair.name,
-                label,
-                prep_ms,
-                align_ms,
-                _LAST_MIN_MS[0],
-                translation_error_m(T, pair.T_target_source) * 100,
-                rotation_error_deg(T, pair.T_target_source),
-                -1,
-            )
+            _row(pair, label, prep_ms, align_ms, T, -1)
         )
     return rows
 

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.errors import ConfigError
+from pipeline.errors import ConfigError, DecodeError
 from pipeline.frames import CameraFrame, LidarFrame
 from readers.base import LogReader, RawMessage
 from readers.decode import decode_pointcloud2, stamp_to_ns
@@ -44,6 +44,7 @@ class PairingStats:
         matched: lidar frames with a camera frame within the tolerance.
         unmatched_lidar: lidar frames skipped for want of one.
         yielded: pairs actually produced (``max_pairs`` may select fewer than ``matched``).
+        undecodable: selected frames that could not be decoded (their pairs are skipped).
     """
 
     lidar_frames: int = 0
@@ -51,6 +52,7 @@ class PairingStats:
     matched: int = 0
     unmatched_lidar: int = 0
     yielded: int = 0
+    undecodable: int = 0
 
 
 def pair_stamps(
@@ -174,6 +176,7 @@ def _decode_pairs(
     info = CameraInfoTracker(reader, camera_info_topic_for(camera_topic, reader.topics))
     topics = [lidar_topic, camera_topic] + ([info.topic] if info.topic else [])
     seen = {lidar_topic: -1, camera_topic: -1}
+    first_error: DecodeError | None = None
     for raw in reader.messages(topics=topics, start_ns=start_ns, end_ns=end_ns):
         if raw.topic == info.topic:
             info.update(reader, raw)
@@ -181,15 +184,33 @@ def _decode_pairs(
         seen[raw.topic] += 1
         index = seen[raw.topic]
         msg: Any
-        if raw.topic == lidar_topic and index in lidar_uses:
+        is_lidar = raw.topic == lidar_topic
+        uses = lidar_uses if is_lidar else camera_uses if raw.topic == camera_topic else {}
+        if uses.get(index, 0) <= 0:
+            continue
+        try:
             msg = reader.deserialize(raw)
-            lidar_frames[index] = decode_pointcloud2(msg, lidar_topic, raw.log_time_ns)
-        elif raw.topic == camera_topic and index in camera_uses:
-            msg = reader.deserialize(raw)
-            frame = decode_camera_image(camera_type, msg, camera_topic, raw.log_time_ns)
-            frame.camera = info.model
-            camera_frames[index] = frame
-        else:
+            if is_lidar:
+                lidar_frames[index] = decode_pointcloud2(msg, lidar_topic, raw.log_time_ns)
+            else:
+                frame = decode_camera_image(camera_type, msg, camera_topic, raw.log_time_ns)
+                frame.camera = info.model
+                camera_frames[index] = frame
+        except DecodeError as err:
+            # One bad frame must not end the run: skip its pairs; fail only when nothing decodes.
+            stats.undecodable += 1
+            first_error = first_error or err
+            log.warning("skipping an undecodable frame on %s at log time %d: %s", raw.topic, raw.log_time_ns, err)
+            for li, ci in [pair for pair in pending if (pair[0] if is_lidar else pair[1]) == index]:
+                pending.remove((li, ci))
+                lidar_uses[li] -= 1
+                camera_uses[ci] -= 1
+                if not lidar_uses[li]:
+                    lidar_frames.pop(li, None)
+                if not camera_uses[ci]:
+                    camera_frames.pop(ci, None)
+            if not pending:
+                break
             continue
         ready = [(li, ci) for li, ci in pending if li in lidar_frames and ci in camera_frames]
         for li, ci in ready:
@@ -203,4 +224,6 @@ def _decode_pairs(
             if not camera_uses[ci]:
                 del camera_frames[ci]
         if not pending:
-            return
+            break
+    if stats.yielded == 0 and first_error is not None:
+        raise first_error

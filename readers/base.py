@@ -62,12 +62,13 @@ class ChannelInfo:
     metadata: tuple[tuple[str, str], ...] = ()
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class RawMessage:
     """One undecoded message: its topic, type, receive time (ns) and payload bytes.
 
     ``publish_time_ns`` is set where the container stores one (MCAP), else None; ``channel`` says
     how the message's channel is stored (set by every fleetcal reader; None for hand-made ones).
+    Slotted: one is built per message, and slots make that about a third cheaper.
     """
 
     topic: str

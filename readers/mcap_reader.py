@@ -26,6 +26,7 @@ from mcap.stream_reader import MAGIC_SIZE, StreamReader, breakup_chunk
 
 from pipeline.errors import ReaderError, TruncatedLogError
 from readers.base import ChannelInfo, LogFormat, RawMessage, Serialization, TopicInfo
+from readers.common import ContainerReader
 from readers.typesys import DefinitionEncoding, LogTypes, TypeDefinition, build_log_types, normalize_msgtype
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -71,7 +72,7 @@ class _ScanResult:
     truncation: TruncationInfo | None
 
 
-class McapLogReader:
+class McapLogReader(ContainerReader):
     """A ``LogReader`` over one MCAP file.
 
     Args:
@@ -121,6 +122,7 @@ class McapLogReader:
             )
         self._topics, self._types = self._build_topics(scan.counts)
         self._channel_infos: dict[int, ChannelInfo] = {}
+        self._raw_fields: dict[int, tuple[str, Serialization, ChannelInfo]] = {}
 
     def _read_header(self, stream: IO[bytes]) -> str:
         """The profile named in the Header record; ReaderError when the first record is no header."""
@@ -220,21 +222,6 @@ class McapLogReader:
             )
         return topics, types
 
-    @property
-    def topics(self) -> dict[str, TopicInfo]:
-        """Topic name -> TopicInfo (counts of intact messages)."""
-        return dict(self._topics)
-
-    @property
-    def start_ns(self) -> int:
-        """Log time (ns) of the first message."""
-        return self._start_ns
-
-    @property
-    def end_ns(self) -> int:
-        """One past the log time (ns) of the last message (exclusive bound, as rosbags)."""
-        return self._end_ns
-
     def messages(
         self,
         topics: Iterable[str] | None = None,
@@ -270,15 +257,20 @@ class McapLogReader:
         return cached
 
     def _raw(self, channel: Channel, message: Message) -> RawMessage:
-        info = self._topics[channel.topic]
+        fields = self._raw_fields.get(channel.id)
+        if fields is None:  # once per channel: type, serialisation and ChannelInfo
+            info = self._topics[channel.topic]
+            serialization = _MESSAGE_ENCODINGS.get(channel.message_encoding, info.serialization)
+            fields = self._raw_fields[channel.id] = (info.msgtype, serialization, self.channel_info(channel))
+        msgtype, serialization, channel_info = fields
         return RawMessage(
             topic=channel.topic,
-            msgtype=info.msgtype,
+            msgtype=msgtype,
             log_time_ns=message.log_time,
             data=message.data,
-            serialization=_MESSAGE_ENCODINGS.get(channel.message_encoding, info.serialization),
+            serialization=serialization,
             publish_time_ns=message.publish_time,
-            channel=self.channel_info(channel),
+            channel=channel_info,
         )
 
     def _messages_indexed(
@@ -286,14 +278,14 @@ class McapLogReader:
     ) -> Iterator[RawMessage]:
         try:
             with self.path.open("rb") as stream:
-                reader = SeekingReader(stream)
+                reader = SeekingReader(stream, validate_crcs=True)
                 for _, channel, message in reader.iter_messages(
                     topics=topics, starting_at=start_ns, ending_before=end_ns, log_time_order=True
                 ):
                     yield self._raw(channel, message)
         except OSError as err:
             raise ReaderError(f"cannot read {self.path}: {err.strerror or err}") from err
-        except (McapError, zstandard.ZstdError, struct.error) as err:
+        except (McapError, zstandard.ZstdError, struct.error, ValueError) as err:
             raise ReaderError(f"damaged MCAP file {self.path}: {err}") from err
 
     def _messages_streamed(
@@ -319,19 +311,6 @@ class McapLogReader:
         except OSError as err:
             raise ReaderError(f"cannot read {self.path}: {err.strerror or err}") from err
 
-    def deserialize(self, raw: RawMessage) -> Any:
-        """The rosbags message object of ``raw``. Raises DecodeError."""
-        return self._types.deserialize(raw)
-
-    def close(self) -> None:
-        """Nothing stays open between calls; kept for the LogReader contract."""
-
-    def __enter__(self) -> McapLogReader:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
 
 def _stream_records(
     stream: IO[bytes],
@@ -347,7 +326,7 @@ def _stream_records(
     """
     fd = stream.fileno()
     stream.seek(MAGIC_SIZE)
-    records = StreamReader(stream, skip_magic=True, emit_chunks=True).records
+    records = StreamReader(stream, skip_magic=True, emit_chunks=True, validate_crcs=True).records
     while True:
         offset = stream.tell()
         if offset >= size:
@@ -365,7 +344,7 @@ def _stream_records(
             if isinstance(record, Chunk):
                 if chunk_wanted is not None and not chunk_wanted(record):
                     continue
-                inner = breakup_chunk(record)
+                inner = breakup_chunk(record, validate_crc=True)
             else:
                 inner = [record]
         except _PARSE_ERRORS as err:

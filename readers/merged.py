@@ -13,10 +13,11 @@ from typing import Any
 
 from pipeline.errors import DecodeError, ReaderError
 from readers.base import LogFormat, LogReader, RawMessage, TopicInfo
+from readers.common import ReaderPlumbing
 from readers.mcap_reader import TruncationInfo
 
 
-class MergedLogReader:
+class MergedLogReader(ReaderPlumbing):
     """A ``LogReader`` over several files of one recording.
 
     Args:
@@ -56,11 +57,6 @@ class MergedLogReader:
                 )
                 if not previous.decodable and info.decodable:
                     self._topic_reader[name] = reader
-
-    @property
-    def topics(self) -> dict[str, TopicInfo]:
-        """Topic name -> TopicInfo, counts summed over the files."""
-        return dict(self._topics)
 
     @property
     def start_ns(self) -> int:
@@ -108,9 +104,3 @@ class MergedLogReader:
         """Close every file."""
         for reader in self.readers:
             reader.close()
-
-    def __enter__(self) -> MergedLogReader:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()

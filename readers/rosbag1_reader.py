@@ -10,19 +10,19 @@ from __future__ import annotations
 import os
 from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import Any
 
 from rosbags.rosbag1 import Reader
 from rosbags.rosbag1 import ReaderError as Rosbag1Error
 
 from pipeline.errors import ReaderError
-from readers.base import LogFormat, RawMessage, TopicInfo
+from readers.base import LogFormat, RawMessage
+from readers.common import ContainerReader, rosbags_time_span
 from readers.typesys import channel_info_from_connection, normalize_msgtype, topics_from_connections
 
 ROSBAG1_MAGIC = b"#ROSBAG V2.0\n"
 
 
-class Rosbag1LogReader:
+class Rosbag1LogReader(ContainerReader):
     """A ``LogReader`` over one ROS 1 bag file.
 
     Raises:
@@ -38,7 +38,7 @@ class Rosbag1LogReader:
         self._reader = Reader(self.path)
         try:
             self._reader.open()
-        except Rosbag1Error as err:
+        except (Rosbag1Error, ValueError, KeyError) as err:  # damaged headers: UnicodeDecodeError, ...
             raise ReaderError(f"cannot read ROS 1 bag {self.path}: {err}") from err
         except OSError as err:
             raise ReaderError(f"cannot read {self.path}: {err.strerror or err}") from err
@@ -46,24 +46,7 @@ class Rosbag1LogReader:
         self._channel_infos = {
             c.id: channel_info_from_connection(c, "ros1") for c in self._reader.connections
         }
-        has_messages = self._reader.message_count > 0
-        self._start_ns = self._reader.start_time if has_messages else 0
-        self._end_ns = self._reader.end_time if has_messages else 0
-
-    @property
-    def topics(self) -> dict[str, TopicInfo]:
-        """Topic name -> TopicInfo."""
-        return dict(self._topics)
-
-    @property
-    def start_ns(self) -> int:
-        """Log time (ns) of the first message."""
-        return self._start_ns
-
-    @property
-    def end_ns(self) -> int:
-        """One past the log time (ns) of the last message (exclusive bound)."""
-        return self._end_ns
+        self._start_ns, self._end_ns = rosbags_time_span(self._reader)
 
     def messages(
         self,
@@ -88,20 +71,10 @@ class Rosbag1LogReader:
                     serialization="ros1",
                     channel=self._channel_infos[conn.id],
                 )
-        except Rosbag1Error as err:
+        except (Rosbag1Error, ValueError, KeyError) as err:  # damaged headers: UnicodeDecodeError, ...
             raise ReaderError(f"damaged ROS 1 bag {self.path}: {err}") from err
-
-    def deserialize(self, raw: RawMessage) -> Any:
-        """The rosbags message object of ``raw``. Raises DecodeError."""
-        return self._types.deserialize(raw)
 
     def close(self) -> None:
         """Close the bag file."""
         if self._reader.bio is not None:
             self._reader.close()
-
-    def __enter__(self) -> Rosbag1LogReader:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()

@@ -16,17 +16,19 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
+import apsw
 import zstandard
 from rosbags.interfaces import ConnectionExtRosbag2
 from rosbags.rosbag2 import Reader
 from rosbags.rosbag2 import ReaderError as Rosbag2Error
 
 from pipeline.errors import ReaderError
-from readers.base import LogFormat, RawMessage, Serialization, TopicInfo
+from readers.base import LogFormat, RawMessage, Serialization
+from readers.common import ContainerReader, rosbags_time_span
 from readers.typesys import channel_info_from_connection, normalize_msgtype, topics_from_connections
 
 
-class Rosbag2LogReader:
+class Rosbag2LogReader(ContainerReader):
     """A ``LogReader`` over one ROS 2 bag (folder, its ``metadata.yaml``, or a lone ``.db3``).
 
     Raises:
@@ -46,8 +48,9 @@ class Rosbag2LogReader:
         try:
             self._reader = Reader(self.path)
             self._reader.open()
-        except (Rosbag2Error, sqlite3.Error, KeyError, ValueError) as err:
-            raise ReaderError(f"cannot read ROS 2 bag {self.path}: {err}") from err
+        except (Rosbag2Error, sqlite3.Error, apsw.Error, KeyError, ValueError) as err:
+            reason = " ".join(str(err).split("\n", 1)[0].split())  # one line (YAML errors span several)
+            raise ReaderError(f"cannot read ROS 2 bag {self.path}: {reason}") from err
         except OSError as err:
             raise ReaderError(f"cannot read ROS 2 bag {self.path}: {err.strerror or err}") from err
         exts = [c.ext for c in self._reader.connections]
@@ -60,24 +63,7 @@ class Rosbag2LogReader:
         self._channel_infos = {
             (c.topic, c.msgtype): channel_info_from_connection(c, "cdr") for c in self._reader.connections
         }
-        has_messages = self._reader.message_count > 0
-        self._start_ns = self._reader.start_time if has_messages else 0
-        self._end_ns = self._reader.end_time if has_messages else 0
-
-    @property
-    def topics(self) -> dict[str, TopicInfo]:
-        """Topic name -> TopicInfo."""
-        return dict(self._topics)
-
-    @property
-    def start_ns(self) -> int:
-        """Log time (ns) of the first message."""
-        return self._start_ns
-
-    @property
-    def end_ns(self) -> int:
-        """One past the log time (ns) of the last message (exclusive bound)."""
-        return self._end_ns
+        self._start_ns, self._end_ns = rosbags_time_span(self._reader)
 
     def messages(
         self,
@@ -103,7 +89,7 @@ class Rosbag2LogReader:
                     serialization=self._serialization,
                     channel=self._channel_infos.get((conn.topic, conn.msgtype)),
                 )
-        except (Rosbag2Error, sqlite3.Error, zstandard.ZstdError) as err:
+        except (Rosbag2Error, sqlite3.Error, apsw.Error, zstandard.ZstdError) as err:  # rosbags reads .db3 via apsw
             raise ReaderError(f"damaged ROS 2 bag {self.path}: {err}") from err
 
     def _storages(self) -> list[Any]:
@@ -117,17 +103,7 @@ class Rosbag2LogReader:
         storage = self._reader.storage
         return list(getattr(storage, "storages", [storage]))
 
-    def deserialize(self, raw: RawMessage) -> Any:
-        """The rosbags message object of ``raw``. Raises DecodeError."""
-        return self._types.deserialize(raw)
-
     def close(self) -> None:
         """Close the bag's storage files."""
         if self._reader.is_open:
             self._reader.close()
-
-    def __enter__(self) -> Rosbag2LogReader:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()

@@ -53,8 +53,12 @@ class TypeDefinition:
     text: str
 
 
+@lru_cache(maxsize=4096)
 def normalize_msgtype(msgtype: str) -> str:
-    """ROS 2 spelling of a type name: ``sensor_msgs/PointCloud2`` -> ``sensor_msgs/msg/PointCloud2``."""
+    """ROS 2 spelling of a type name: ``sensor_msgs/PointCloud2`` -> ``sensor_msgs/msg/PointCloud2``.
+
+    Cached: readers call it for every message.
+    """
     parts = msgtype.strip().split("/")
     if len(parts) == 2:
         return f"{parts[0]}/msg/{parts[1]}"
@@ -111,7 +115,9 @@ class LogTypes:
         try:
             if raw.serialization == "ros1":
                 return self.typestore.deserialize_ros1(raw.data, msgtype)
-            return self.typestore.deserialize_cdr(raw.data, msgtype)
+            # rosbags slices off the 4-byte CDR header: on bytes that copies the whole payload, on a
+            # memoryview it does not, so uint8[] fields (PointCloud2.data, Image.data) stay views.
+            return self.typestore.deserialize_cdr(memoryview(raw.data), msgtype)
         except (SerdeError, struct.error, ValueError, IndexError, KeyError, UnicodeDecodeError) as err:
             msg = f"cannot decode a {msgtype} message on {raw.topic} ({raw.serialization}): {err}"
             raise DecodeError(msg) from err

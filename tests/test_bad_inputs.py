@@ -463,14 +463,16 @@ def test_bad_input_in_a_real_process(name: str, tmp_path: Path) -> None:
 
 
 DECODE_PEAK_SCRIPT = """
-import resource, sys
+import re, sys
 from readers.open import open_log
 from readers.frames import iter_lidar_frames
 with open_log(sys.argv[1]) as reader:
     for frame in iter_lidar_frames(reader, "/lidar/points"):
         print("POINTS", frame.n_points, "DROPPED", frame.dropped_points)
         del frame
-print("PEAK_RSS_KB", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+# VmHWM, not ru_maxrss: ru_maxrss carries the parent's (pytest's) peak across fork + exec.
+status = open("/proc/self/status").read()
+print("PEAK_RSS_KB", re.search(r"VmHWM:\\s+(\\d+)", status).group(1))
 """
 
 

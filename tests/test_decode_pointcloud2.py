@@ -249,6 +249,34 @@ def test_time_channel_is_seconds_relative_to_stamp(
     np.testing.assert_array_equal(frame.channels[name], values.astype(frame.channels[name].dtype))
 
 
+
+def test_relative_time_from_another_field_is_its_own_array() -> None:
+    """float64 seconds in ``t`` need no change; ``time`` must still not alias the ``t`` channel."""
+    msg = rm.pointcloud2(STAMP, "l", _points(3), {"t": np.array([0.0, 0.05, 0.1])})
+    frame = decode_pointcloud2(_roundtrip(msg, "ros2"), "/l")
+    np.testing.assert_array_equal(frame.channels["time"], [0.0, 0.05, 0.1])
+    assert not np.shares_memory(frame.channels["time"], frame.channels["t"])
+
+
+@pytest.mark.parametrize(("fmt", "filename"), [("mcap", "log.mcap"), ("ros1", "log.bag")])
+def test_reader_deserialize_keeps_pointcloud_payload_zero_copy(tmp_path: Path, fmt: str, filename: str) -> None:
+    """``deserialize`` hands PointCloud2 ``data`` over as a view of the raw message bytes (cdr and ros1)."""
+    from readers.open import open_log
+    from stages.sinks.log_writer import LogWriter
+
+    intensity = np.arange(1000, dtype=np.float32)
+    profile: Profile = "ros1" if fmt == "ros1" else "ros2"
+    msg = rm.pointcloud2(STAMP, "l", _points(1000), {"intensity": intensity}, profile=profile)
+    with LogWriter(tmp_path / filename, fmt, compression=None) as writer:  # type: ignore[arg-type]
+        writer.write("/l", TYPE, STAMP, msg)
+    with open_log(tmp_path / filename) as reader:
+        raw = next(iter(reader.messages(topics=["/l"])))
+        decoded = reader.deserialize(raw)
+    assert np.shares_memory(np.frombuffer(raw.data, np.uint8), decoded.data)
+    frame = decode_pointcloud2(decoded, "/l")
+    np.testing.assert_array_equal(frame.points_xyz, _points(1000))
+    np.testing.assert_array_equal(frame.channels["intensity"], intensity)
+
 def _first_cloud(path: Path, topic: str | None = None) -> tuple[Any, str]:
     from readers.open import open_log
 

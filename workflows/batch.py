@@ -41,7 +41,7 @@ from pipeline.config import Config
 from pipeline.errors import ConfigError, FleetcalError, InputError
 from pipeline.progress import Progress
 from pipeline.transforms import from_quat, rotation_error_deg, translation_error_m
-from stages.sinks.tables import write_rows
+from stages.sinks.tables import POSE_FIELDS, RPY_FIELDS, write_rows
 
 __all__ = [
     "FLEET_FILE",
@@ -100,16 +100,8 @@ FLEET_SCHEMA = pa.schema(
         ("log_start_ns", pa.int64()),
         ("verdict", pa.string()),
         ("score", pa.float64()),
-        ("tx_m", pa.float64()),
-        ("ty_m", pa.float64()),
-        ("tz_m", pa.float64()),
-        ("qx", pa.float64()),
-        ("qy", pa.float64()),
-        ("qz", pa.float64()),
-        ("qw", pa.float64()),
-        ("roll_deg", pa.float64()),
-        ("pitch_deg", pa.float64()),
-        ("yaw_deg", pa.float64()),
+        *POSE_FIELDS,
+        *RPY_FIELDS,
         ("change_deg", pa.float64()),
         ("change_m", pa.float64()),
         ("drift", pa.bool_()),

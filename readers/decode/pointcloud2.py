@@ -100,14 +100,20 @@ def _payload(data: Any) -> NDArray[np.uint8]:
     return np.frombuffer(data, dtype=np.uint8)
 
 
-def _time_channel(values: NDArray[Any], stamp_ns: int) -> NDArray[np.float64]:
-    """Per-point time as float64 seconds relative to the header stamp."""
+def _time_channel(values: NDArray[Any], stamp_ns: int, copy: bool = True) -> NDArray[np.float64]:
+    """Per-point time as float64 seconds relative to the header stamp.
+
+    ``copy=False`` lets float64 seconds that need no change come back as ``values`` itself (for a
+    caller that replaces ``values`` with the result).
+    """
     if values.size == 0:
         return np.zeros(values.shape, dtype=np.float64)
     sample = values[:: max(1, values.size // _TIME_PROBE_SAMPLES)]
     if values.dtype.kind == "f":
-        seconds = values.astype(np.float64)
-        probe = float(np.nanmedian(np.abs(sample.astype(np.float64))))
+        seconds = values.astype(np.float64, copy=copy)
+        magnitudes = np.abs(sample.astype(np.float64))
+        magnitudes = magnitudes[~np.isnan(magnitudes)]
+        probe = float(np.median(magnitudes)) if magnitudes.size else 0.0
         if probe > _ABSOLUTE_NS:
             return np.asarray((seconds - stamp_ns) * 1e-9)
         if probe > _ABSOLUTE_S:
@@ -236,7 +242,7 @@ def decode_pointcloud2(msg: Any, topic: str, log_time_ns: int = 0) -> LidarFrame
         channels[name] = np.ascontiguousarray(values)
     time_source = next((name for name in TIME_FIELDS if name in channels and channels[name].ndim == 1), None)
     if time_source is not None:
-        channels["time"] = _time_channel(channels[time_source], stamp_ns)
+        channels["time"] = _time_channel(channels[time_source], stamp_ns, copy=time_source != "time")
 
     organized = height > 1
     return LidarFrame(

@@ -21,20 +21,9 @@ from rosbags.typesys.store import Typestore
 from pipeline.camera_model import CameraModel
 from pipeline.errors import InputError
 from pipeline.transforms import to_quat
+from readers.decode.pointcloud2 import POINTFIELD_DTYPES
 
 Profile = Literal["ros1", "ros2"]
-
-POINTFIELD_DTYPES: dict[int, np.dtype[Any]] = {
-    1: np.dtype(np.int8),
-    2: np.dtype(np.uint8),
-    3: np.dtype(np.int16),
-    4: np.dtype(np.uint16),
-    5: np.dtype(np.int32),
-    6: np.dtype(np.uint32),
-    7: np.dtype(np.float32),
-    8: np.dtype(np.float64),
-}
-"""PointField datatype code -> numpy dtype (native byte order)."""
 
 _POINTFIELD_CODES = {dt.str[1:]: code for code, dt in POINTFIELD_DTYPES.items()}
 

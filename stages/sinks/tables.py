@@ -12,6 +12,24 @@ import pyarrow.parquet as pq
 
 from stages.sinks.atomic import atomic_path
 
+POSE_FIELDS: list[tuple[str, pa.DataType]] = [
+    ("tx_m", pa.float64()),
+    ("ty_m", pa.float64()),
+    ("tz_m", pa.float64()),
+    ("qx", pa.float64()),
+    ("qy", pa.float64()),
+    ("qz", pa.float64()),
+    ("qw", pa.float64()),
+]
+"""Pose columns of every table that holds one (translation in metres, scalar-last quaternion)."""
+
+RPY_FIELDS: list[tuple[str, pa.DataType]] = [
+    ("roll_deg", pa.float64()),
+    ("pitch_deg", pa.float64()),
+    ("yaw_deg", pa.float64()),
+]
+"""The same rotation as xyz-extrinsic roll, pitch, yaw in degrees (beside ``POSE_FIELDS``)."""
+
 CALIBRATION_SCHEMA = pa.schema(
     [
         ("lidar_topic", pa.string()),
@@ -20,16 +38,8 @@ CALIBRATION_SCHEMA = pa.schema(
         ("camera_frame", pa.string()),
         ("metric", pa.string()),
         ("feature", pa.string()),
-        ("tx_m", pa.float64()),
-        ("ty_m", pa.float64()),
-        ("tz_m", pa.float64()),
-        ("qx", pa.float64()),
-        ("qy", pa.float64()),
-        ("qz", pa.float64()),
-        ("qw", pa.float64()),
-        ("roll_deg", pa.float64()),
-        ("pitch_deg", pa.float64()),
-        ("yaw_deg", pa.float64()),
+        *POSE_FIELDS,
+        *RPY_FIELDS,
         ("score", pa.float64()),
         ("initial_score", pa.float64()),
         ("frames_used", pa.int64()),
@@ -53,13 +63,7 @@ FRAMES_SCHEMA = pa.schema(
 TRAJECTORY_SCHEMA = pa.schema(
     [
         ("stamp_ns", pa.int64()),
-        ("tx_m", pa.float64()),
-        ("ty_m", pa.float64()),
-        ("tz_m", pa.float64()),
-        ("qx", pa.float64()),
-        ("qy", pa.float64()),
-        ("qz", pa.float64()),
-        ("qw", pa.float64()),
+        *POSE_FIELDS,
         ("fitness", pa.float64()),
         ("rmse_m", pa.float64()),
         ("iterations", pa.int32()),
