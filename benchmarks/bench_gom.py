@@ -1,0 +1,121 @@
+"""GOM calibration benchmark: kernel speed and accuracy on the real logs.
+
+Prints (1) the time of one GOM evaluation per pose within a 200-pose batch for an 80k-point scan
+against a 1242x375 image, (2) a table of rotation / translation error vs the ``.truth.json``
+reference and runtime for every available real log x {gom, nmi, levinson}, and (3) with
+``--seeds N`` the KITTI robustness study: starts 5 deg / 0.5 m off on random axes, search 10 deg / 1 m.
+
+    .venv/bin/python benchmarks/bench_gom.py [--seeds 10] [--logs kitti pjlab nuscenes] [--skip-table]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from pipeline.camera_model import CameraModel
+from stages.calibration import CalibrationConfig, GomScorer, calibrate
+from tests.test_calibration_real import LOGS, errors, load_real_frames
+from tests.test_calibration_synthetic import perturb
+
+CASES = {
+    "kitti": ("kitti_2011_09_26.mcap", {}),
+    "pjlab": ("pjlab_road_rig1", {}),
+    "nuscenes": ("nuscenes_n015.bag", {"cameras": 6, "ego_motion": True}),
+    "nuscenes-no-ego": ("nuscenes_n015.bag", {"cameras": 6, "ego_motion": False}),
+    "nuscenes-logr": ("nuscenes_n015.bag", {"cameras": 6, "ego_motion": True, "feature": "log_range"}),
+    "nuscenes-logr-no-ego": ("nuscenes_n015.bag", {"cameras": 6, "ego_motion": False, "feature": "log_range"}),
+    "kitti-logr": ("kitti_2011_09_26.mcap", {"feature": "log_range"}),
+}
+
+
+def bench_kernel(n_points: int = 80_000, n_poses: int = 200, repeats: int = 5) -> None:
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(0)
+    cam = CameraModel(1242, 375, np.array([[721.5, 0, 609.6], [0, 721.5, 172.9], [0, 0, 1]]), np.zeros(5))
+    uv = rng.random((n_points, 2)) * [1242, 375]
+    uv = uv[np.lexsort((uv[:, 0], np.floor(uv[:, 1] / 4)))]  # scan-like order, as calibrate() sorts
+    pts = cam.unproject(uv) * (5 + 30 * rng.random(n_points))[:, None]
+    lidar_gx, lidar_gy = rng.standard_normal(n_points), rng.standard_normal(n_points)
+    lidar_mag = rng.random(n_points)
+    scorer = GomScorer(pts, lidar_gx, lidar_gy, lidar_mag, rng.standard_normal((375, 1242)),
+                       rng.standard_normal((375, 1242)), cam)
+    T = np.tile(np.eye(4), (n_poses, 1, 1))
+    T[:, :3, :3] = Rotation.from_rotvec(rng.standard_normal((n_poses, 3)) * 0.005).as_matrix()
+    scorer.score(T[:2])
+    wall, cpu = [], []
+    for _ in range(repeats):
+        t0, c0 = time.perf_counter(), time.process_time()
+        batch = scorer.score(T)
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    best = int(np.argmin(wall))
+    print(f"GOM evaluation, {n_points} points all in view, 1242x375 image, batch of {n_poses} poses: "
+          f"{wall[best] / n_poses * 1e3:.2f} ms wall per pose (best of {repeats}; median "
+          f"{np.median(wall) / n_poses * 1e3:.2f}), {cpu[best] / n_poses * 1e3:.2f} ms CPU per pose; "
+          f"{int(batch.counts.mean())} points projected")
+
+
+def table(names: list[str], metrics: list[str]) -> None:
+    print(f"\n{'log':18s} {'metric':9s} {'rot_deg':>8s} {'trans_m':>8s} {'score':>8s} {'init':>8s} "
+          f"{'runtime_s':>9s} {'frames':>6s} verdict   (log tf start: rot_deg trans_m)")
+    for name in names:
+        log, kwargs = CASES[name]
+        if not (LOGS / log).exists():
+            print(f"{name:18s} skipped: {LOGS / log} not present")
+            continue
+        problem = load_real_frames(log, **kwargs)  # type: ignore[arg-type]
+        r0, t0 = errors(problem.T_init, problem.T_true)
+        for metric in metrics:
+            result = calibrate(problem.frames, problem.T_init, CalibrationConfig(metric=metric))
+            rot, trans = errors(result.T_camera_lidar, problem.T_true)
+            print(f"{name:18s} {metric:9s} {rot:8.3f} {trans:8.3f} {result.score:8.4f} "
+                  f"{result.initial_score:8.4f} {result.runtime_s:9.1f} {result.frames_used:6d} "
+                  f"{result.verdict:9s} ({r0:.2f} {t0:.3f})",
+                  flush=True)
+
+
+def seeds_study(n: int) -> None:
+    log = "kitti_2011_09_26.mcap"
+    if not (LOGS / log).exists():
+        print(f"seed study skipped: {LOGS / log} not present")
+        return
+    problem = load_real_frames(log)
+    print(f"\nKITTI from 5 deg / 0.5 m offsets (random axes), search 10 deg / 1 m, {n} seeds")
+    ok = 0
+    for seed in range(n):
+        T_start = perturb(problem.T_true, 5.0, 0.5, seed=100 + seed)
+        cfg = CalibrationConfig(search_deg=10.0, search_m=1.0, seed=seed)
+        result = calibrate(problem.frames, T_start, cfg)
+        rot, trans = errors(result.T_camera_lidar, problem.T_true)
+        good = rot <= 0.3 and trans <= 0.10
+        ok += good
+        print(f"  seed {seed}: {rot:.3f} deg {trans:.3f} m score {result.score:.4f} "
+              f"runtime {result.runtime_s:.1f} s {'ok' if good else 'FAIL'}", flush=True)
+    print(f"  within 0.3 deg / 10 cm: {ok} of {n}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--logs", nargs="*", default=list(CASES), choices=list(CASES))
+    parser.add_argument("--metrics", nargs="*", default=["gom", "nmi", "levinson"])
+    parser.add_argument("--seeds", type=int, default=0, help="KITTI offset study with this many seeds")
+    parser.add_argument("--skip-table", action="store_true")
+    args = parser.parse_args()
+    bench_kernel()
+    if not args.skip_table:
+        table(args.logs, args.metrics)
+    if args.seeds:
+        seeds_study(args.seeds)
+
+
+if __name__ == "__main__":
+    main()

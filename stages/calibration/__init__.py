@@ -1,0 +1,50 @@
+"""Targetless lidar-camera calibration with the gradient orientation measure (GOM, Taylor et al.).
+
+Lidar gradients on a camera-centred sphere, GOM / NMI / Levinson metrics evaluated for whole pose
+batches in numba, a particle swarm plus pattern-search polish, and ``calibrate`` on top.
+"""
+
+from stages.calibration.affine import AffineResult, calibrate_affine
+from stages.calibration.calibrator import (
+    CalibrationConfig,
+    CalibrationFrame,
+    CalibrationProblem,
+    CalibrationResult,
+    calibrate,
+    compensate_ego_motion,
+)
+from stages.calibration.landscape import ScoreLandscape, score_landscape
+from stages.calibration.metrics import (
+    METRICS,
+    GomScorer,
+    LevinsonScorer,
+    MetricBatch,
+    NmiScorer,
+    levinson_edge_image,
+)
+from stages.calibration.pso import SwarmResult, particle_swarm, pattern_search
+from stages.calibration.sphere_gradients import LidarGradients, compute_sphere_gradients
+
+__all__ = [
+    "METRICS",
+    "AffineResult",
+    "CalibrationConfig",
+    "CalibrationFrame",
+    "CalibrationProblem",
+    "CalibrationResult",
+    "GomScorer",
+    "LevinsonScorer",
+    "LidarGradients",
+    "MetricBatch",
+    "NmiScorer",
+    "ScoreLandscape",
+    "SwarmResult",
+    "calibrate",
+    "calibrate_affine",
+    "compensate_ego_motion",
+    "compute_sphere_gradients",
+    "levinson_edge_image",
+    "particle_swarm",
+    "pattern_search",
+    "score_landscape",
+]

@@ -1,0 +1,256 @@
+"""Alignment metrics between a lidar scan and a camera image, evaluated for a batch of poses.
+
+All metrics share one interface: a ``*Scorer`` is built once per lidar/camera frame (inputs validated
+and packed), then ``scorer.score(T_camera_lidar_batch)`` returns a ``MetricBatch`` for (P, 4, 4)
+candidate extrinsics in one numba call (parallel over poses). Higher is better for every metric.
+
+- GOM (paper eq. 9-11): gradient orientation alignment weighted by both gradient magnitudes, in [0, 1].
+- NMI (paper eq. 3): normalised mutual information of lidar feature vs image intensity, in [1, 2].
+- Levinson & Thrun: sum of lidar depth discontinuity x blurred mean-subtracted image edge value.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.camera_model import CameraModel
+from pipeline.errors import ProcessingError
+from stages.calibration import metric_kernels as mk
+
+MetricName = Literal["gom", "nmi", "levinson"]
+METRICS: tuple[str, ...] = ("gom", "nmi", "levinson")
+
+
+@dataclass
+class MetricBatch:
+    """Scores of a batch of poses for one frame.
+
+    Attributes:
+        scores: (P,) metric value per pose (0 where no point projects).
+        counts: (P,) lidar points that project inside the image and its valid mask.
+    """
+
+    scores: NDArray[np.float64]
+    counts: NDArray[np.int64]
+
+
+def camera_params(camera: CameraModel) -> NDArray[np.float64]:
+    """Pack a CameraModel into the (16,) float64 layout the kernels read (see ``metric_kernels``)."""
+    cam = np.zeros(mk.CAM_PARAMS)
+    cam[0] = mk.MODEL_CODES[camera.distortion_model]
+    cam[1:6] = (camera.fx, camera.fy, camera.cx, camera.cy, camera.K[0, 1])
+    cam[6:14] = camera.coefficients(8)
+    cam[14] = np.inf
+    if camera.distortion_model in ("plumb_bob", "rational_polynomial") and np.any(camera.D):
+        cam[14] = camera._max_undistorted_radius()
+    return cam
+
+
+def project_points(points_cam: NDArray[np.floating], camera: CameraModel) -> tuple[
+        NDArray[np.float64], NDArray[np.bool_]]:
+    """numba projection of (N, 3) optical-frame points; same contract as ``CameraModel.project``."""
+    pts = _points(points_cam)
+    uv, valid = mk.project_points_kernel(pts, camera_params(camera), camera.width, camera.height)
+    return np.asarray(uv), np.asarray(valid)
+
+
+def sample_bicubic(planes: NDArray[np.floating], uv: NDArray[np.floating]) -> NDArray[np.float64]:
+    """Keys bicubic (a = -0.5) samples (N, C) of an (H, W) or (H, W, C) image at pixels (N, 2)
+    (pixel centres at integer coordinates, edges clamped)."""
+    return np.asarray(mk.sample_bicubic_kernel(_planes(planes), np.ascontiguousarray(uv, dtype=np.float64)))
+
+
+def _points(points: NDArray[np.floating]) -> NDArray[np.float64]:
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ProcessingError(f"points must be (N, 3), got {pts.shape}")
+    if not np.all(np.isfinite(pts)):
+        raise ProcessingError("lidar points contain NaN or infinity")
+    return pts
+
+
+def _planes(image: NDArray[np.floating]) -> NDArray[np.float64]:
+    arr = np.asarray(image, dtype=np.float64)
+    if arr.ndim == 2:
+        arr = arr[:, :, None]
+    if arr.ndim != 3 or arr.shape[0] < 1 or arr.shape[1] < 1:
+        raise ProcessingError(f"image must be (H, W) or (H, W, C), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ProcessingError("image contains NaN or infinity")
+    return np.ascontiguousarray(arr)
+
+
+def _mask(mask: NDArray[np.generic] | None, shape: tuple[int, int]) -> NDArray[np.uint8]:
+    if mask is None:
+        return np.ones(shape, dtype=np.uint8)
+    m = np.ascontiguousarray(np.asarray(mask) != 0, dtype=np.uint8)
+    if m.shape != shape:
+        raise ProcessingError(f"valid mask {m.shape} does not match image {shape}")
+    return m
+
+
+def _size_message(shape: tuple[int, ...], camera: CameraModel) -> str:
+    return f"image {shape[1]}x{shape[0]} does not match camera {camera.width}x{camera.height}"
+
+
+def _per_point(values: NDArray[np.floating], n: int, name: str) -> NDArray[np.float64]:
+    arr = np.ascontiguousarray(values, dtype=np.float64).ravel()
+    if arr.shape[0] != n:
+        raise ProcessingError(f"{name} has {arr.shape[0]} values for {n} points")
+    if not np.all(np.isfinite(arr)):
+        raise ProcessingError(f"{name} contains NaN or infinity")
+    return arr
+
+
+def pose_batch(T_camera_lidar_batch: NDArray[np.floating]) -> NDArray[np.float64]:
+    """(P, 3, 4) contiguous ``[R | t]`` rows from (P, 4, 4) or (4, 4) transforms."""
+    T = np.asarray(T_camera_lidar_batch, dtype=np.float64)
+    if T.ndim == 2:
+        T = T[None]
+    if T.ndim != 3 or T.shape[1:] != (4, 4):
+        raise ProcessingError(f"poses must be (P, 4, 4), got {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise ProcessingError("poses contain NaN or infinity")
+    return np.ascontiguousarray(T[:, :3, :])
+
+
+def _focal(focal_scale: NDArray[np.floating] | None, n_pose: int) -> NDArray[np.float64]:
+    if focal_scale is None:
+        return np.ones(n_pose)
+    fs = np.ascontiguousarray(focal_scale, dtype=np.float64).ravel()
+    if fs.shape[0] != n_pose or not np.all(fs > 0):
+        raise ProcessingError(f"focal_scale must be {n_pose} positive values")
+    return fs
+
+
+class GomScorer:
+    """GOM of one lidar scan (with its sphere gradients) against one image's gradients."""
+
+    def __init__(self, points_xyz: NDArray[np.floating], lidar_gx: NDArray[np.floating],
+                 lidar_gy: NDArray[np.floating], lidar_magnitude: NDArray[np.floating],
+                 image_gx: NDArray[np.floating], image_gy: NDArray[np.floating], camera: CameraModel,
+                 mask: NDArray[np.generic] | None = None,
+                 R_camera_lidar_gradients: NDArray[np.floating] | None = None) -> None:
+        """Args: points (N, 3) lidar frame; lidar gradient x/y/magnitude (N,) on the camera sphere;
+        image gradient x/y (H, W) (e.g. Sobel); camera intrinsics; optional (H, W) valid mask;
+        optional 3x3 rotation of the camera the lidar gradients were computed at: when given, each
+        pose's roll about the optical axis relative to it turns the lidar gradient orientations
+        (the paper keeps them fixed, which costs accuracy when the initial roll is off)."""
+        self.points = _points(points_xyz)
+        n = self.points.shape[0]
+        gx = _per_point(lidar_gx, n, "lidar gx")
+        gy = _per_point(lidar_gy, n, "lidar gy")
+        self.magnitude = _per_point(lidar_magnitude, n, "lidar magnitude")
+        theta = np.arctan2(gy, gx)
+        self.c2 = np.ascontiguousarray(np.cos(2 * theta))
+        self.s2 = np.ascontiguousarray(np.sin(2 * theta))
+        igx, igy = np.asarray(image_gx), np.asarray(image_gy)
+        if igx.shape != igy.shape or igx.ndim != 2:
+            raise ProcessingError(f"image gradients {igx.shape} / {igy.shape} must be equal (H, W)")
+        if igx.shape != (camera.height, camera.width):
+            raise ProcessingError(_size_message(igx.shape, camera))
+        self.planes = _planes(np.stack([igx, igy], axis=2))
+        self.mask = _mask(mask, igx.shape)
+        self.cam = camera_params(camera)
+        self.R_gradients = None if R_camera_lidar_gradients is None else np.asarray(
+            R_camera_lidar_gradients, dtype=np.float64).reshape(3, 3)
+
+    def score(self, T_camera_lidar_batch: NDArray[np.floating],
+              focal_scale: NDArray[np.floating] | None = None) -> MetricBatch:
+        poses = pose_batch(T_camera_lidar_batch)
+        roll2 = np.zeros((poses.shape[0], 2))
+        roll2[:, 0] = 1.0
+        if self.R_gradients is not None:
+            R_rel = poses[:, :, :3] @ self.R_gradients.T
+            roll = np.arctan2(R_rel[:, 1, 0], R_rel[:, 0, 0])
+            roll2 = np.ascontiguousarray(np.column_stack([np.cos(2 * roll), np.sin(2 * roll)]))
+        num, den, count = mk.gom_batch_kernel(self.points, self.c2, self.s2, self.magnitude, self.planes,
+                                              self.mask, self.cam, poses, _focal(focal_scale, poses.shape[0]),
+                                              roll2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            gom = np.where(den > 0, num / (2.0 * den), 0.0)
+        return MetricBatch(np.asarray(gom), np.asarray(count))
+
+
+class NmiScorer:
+    """NMI (paper eq. 3) of the lidar feature against the image intensity at the projected points."""
+
+    def __init__(self, points_xyz: NDArray[np.floating], lidar_values: NDArray[np.floating],
+                 image_intensity: NDArray[np.floating], camera: CameraModel,
+                 mask: NDArray[np.generic] | None = None, bins: int = 32) -> None:
+        """Args: points (N, 3) lidar frame; lidar feature (N,) in [0, 1]; image intensity (H, W) in
+        [0, 1]; camera intrinsics; optional valid mask; histogram bins per axis."""
+        self.points = _points(points_xyz)
+        vals = _per_point(lidar_values, self.points.shape[0], "lidar feature")
+        if bins < 2:
+            raise ProcessingError("NMI needs at least 2 histogram bins")
+        self.bins = int(bins)
+        self.lidar_bin = np.ascontiguousarray(np.clip((vals * bins).astype(np.int64), 0, bins - 1))
+        img = np.asarray(image_intensity)
+        if img.shape != (camera.height, camera.width):
+            raise ProcessingError(_size_message(img.shape, camera))
+        self.planes = _planes(img)
+        self.mask = _mask(mask, img.shape)
+        self.cam = camera_params(camera)
+
+    def score(self, T_camera_lidar_batch: NDArray[np.floating],
+              focal_scale: NDArray[np.floating] | None = None) -> MetricBatch:
+        poses = pose_batch(T_camera_lidar_batch)
+        nmi, count = mk.nmi_batch_kernel(self.points, self.lidar_bin, self.planes, self.mask, self.cam, poses,
+                                         _focal(focal_scale, poses.shape[0]), self.bins)
+        return MetricBatch(np.asarray(nmi), np.asarray(count))
+
+
+class LevinsonScorer:
+    """Levinson & Thrun: depth-discontinuity weight x edge image, summed over projected points."""
+
+    def __init__(self, points_xyz: NDArray[np.floating], lidar_weight: NDArray[np.floating],
+                 edge_image: NDArray[np.floating], camera: CameraModel,
+                 mask: NDArray[np.generic] | None = None) -> None:
+        """Args: points (N, 3) lidar frame; per-point depth-discontinuity weight (N,); edge image
+        (H, W) from ``levinson_edge_image``; camera intrinsics; optional valid mask."""
+        self.points = _points(points_xyz)
+        self.weight = _per_point(lidar_weight, self.points.shape[0], "lidar weight")
+        img = np.asarray(edge_image)
+        if img.shape != (camera.height, camera.width):
+            raise ProcessingError(_size_message(img.shape, camera))
+        self.planes = _planes(img)
+        self.mask = _mask(mask, img.shape)
+        self.cam = camera_params(camera)
+        self.scale = 1.0 / max(float(np.sum(self.weight)), 1e-12)
+
+    def score(self, T_camera_lidar_batch: NDArray[np.floating],
+              focal_scale: NDArray[np.floating] | None = None) -> MetricBatch:
+        poses = pose_batch(T_camera_lidar_batch)
+        s, count = mk.levinson_batch_kernel(self.points, self.weight, self.planes, self.mask, self.cam, poses,
+                                            _focal(focal_scale, poses.shape[0]))
+        return MetricBatch(np.asarray(s) * self.scale, np.asarray(count))
+
+
+def levinson_edge_image(gradient_magnitude: NDArray[np.floating],
+                        blur_sigma_px: float = 3.0) -> NDArray[np.float32]:
+    """Levinson & Thrun's image term: edge strength scaled to [0, 1], Gaussian-blurred to widen the
+    capture range, minus its mean (removes the bias towards edge-rich regions)."""
+    mag = np.asarray(gradient_magnitude, dtype=np.float32)
+    top = float(np.max(mag)) if mag.size else 0.0
+    edges = np.asarray(mag / top if top > 0 else mag, dtype=np.float32)
+    if blur_sigma_px > 0:
+        edges = np.asarray(cv2.GaussianBlur(edges, (0, 0), blur_sigma_px), dtype=np.float32)
+    return np.asarray(edges - np.float32(edges.mean()), dtype=np.float32)
+
+
+def gom_reference(lidar_gx: NDArray[np.floating], lidar_gy: NDArray[np.floating],
+                  lidar_magnitude: NDArray[np.floating], image_gx: NDArray[np.floating],
+                  image_gy: NDArray[np.floating]) -> float:
+    """GOM (eq. 9-11) of already-matched gradient pairs, with explicit angles; for checks and tests."""
+    th_l = np.arctan2(lidar_gy, lidar_gx)
+    th_i = np.arctan2(image_gy, image_gx)
+    alpha = np.cos(2 * (th_i - th_l)) + 1
+    mu = np.hypot(image_gx, image_gy) * np.asarray(lidar_magnitude)
+    den = float(np.sum(mu))
+    return float(np.sum(mu * alpha) / (2 * den)) if den > 0 else 0.0

@@ -1,0 +1,144 @@
+"""Particle swarm optimisation (GOM paper 3.6, Algorithm 2) and a batched pattern-search polish.
+
+Both maximise an objective that scores a whole batch of candidates at once
+(``objective(X (P, D)) -> (P,)``), so every iteration is one vectorised call.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.errors import ConfigError
+
+BatchObjective = Callable[[NDArray[np.float64]], NDArray[np.float64]]
+
+
+@dataclass
+class SwarmResult:
+    """Outcome of an optimisation.
+
+    Attributes:
+        best_x: (D,) best parameters found.
+        best_score: objective at ``best_x``.
+        iterations: swarm iterations (or pattern-search steps) run.
+        evaluations: objective evaluations (candidates scored).
+        converged: True when the stopping rule fired before the iteration limit.
+        history: best score after each iteration.
+    """
+
+    best_x: NDArray[np.float64]
+    best_score: float
+    iterations: int
+    evaluations: int
+    converged: bool
+    history: list[float] = field(default_factory=list)
+
+
+def _check_box(lower: NDArray[np.float64], upper: NDArray[np.float64]) -> None:
+    if lower.shape != upper.shape or lower.ndim != 1 or not np.all(upper > lower):
+        raise ConfigError("search box needs lower < upper in every dimension")
+
+
+def particle_swarm(objective: BatchObjective, lower: NDArray[np.floating], upper: NDArray[np.floating],
+                   n_particles: int = 200, max_iterations: int = 100, stall_iterations: int = 15,
+                   min_iterations: int = 20, score_tolerance: float = 1e-6, spread_tolerance: float = 1e-3,
+                   seed: int = 0,
+                   inertia: float = 0.7298, cognitive: float = 1.49618, social: float = 1.49618,
+                   x_initial: NDArray[np.floating] | None = None) -> SwarmResult:
+    """Maximise ``objective`` in the box [lower, upper] with a global-best particle swarm.
+
+    Particles start uniformly in the box (plus ``x_initial`` as particle 0 when given), velocities
+    are ``w v + c1 phi1 (p_local - x) + c2 phi2 (p_global - x)`` (Algorithm 2, dt = 1) limited to
+    half the box, positions are clipped to the box. Stops when the global best has not improved by
+    ``score_tolerance`` for ``stall_iterations`` iterations, or when the swarm's spread (largest
+    per-dimension std over box size) is below ``spread_tolerance`` (either only after
+    ``min_iterations``), or after ``max_iterations``.
+    Deterministic for a given ``seed``.
+    """
+    lo = np.asarray(lower, dtype=np.float64)
+    hi = np.asarray(upper, dtype=np.float64)
+    _check_box(lo, hi)
+    if n_particles < 2 or max_iterations < 1:
+        raise ConfigError("particle swarm needs at least 2 particles and 1 iteration")
+    rng = np.random.default_rng(seed)
+    dim = lo.size
+    span = hi - lo
+    x = lo + rng.random((n_particles, dim)) * span
+    if x_initial is not None:
+        x[0] = np.clip(np.asarray(x_initial, dtype=np.float64), lo, hi)
+    v = (rng.random((n_particles, dim)) - 0.5) * span * 0.2
+    v_max = 0.5 * span
+    f = np.asarray(objective(x), dtype=np.float64)
+    evaluations = n_particles
+    p_best, f_best = x.copy(), f.copy()
+    g = int(np.argmax(f_best))
+    g_x, g_f = p_best[g].copy(), float(f_best[g])
+    history = [g_f]
+    stall = 0
+    converged = False
+    iterations = 0
+    for _ in range(max_iterations):
+        iterations += 1
+        phi1 = rng.random((n_particles, dim))
+        phi2 = rng.random((n_particles, dim))
+        v = inertia * v + cognitive * phi1 * (p_best - x) + social * phi2 * (g_x - x)
+        v = np.clip(v, -v_max, v_max)
+        x = np.clip(x + v, lo, hi)
+        f = np.asarray(objective(x), dtype=np.float64)
+        evaluations += n_particles
+        better = f > f_best
+        p_best[better] = x[better]
+        f_best[better] = f[better]
+        g = int(np.argmax(f_best))
+        if f_best[g] > g_f + score_tolerance:
+            stall = 0
+        else:
+            stall += 1
+        if f_best[g] > g_f:
+            g_x, g_f = p_best[g].copy(), float(f_best[g])
+        history.append(g_f)
+        spread = float(np.max(np.std(x, axis=0) / span))
+        if iterations >= min_iterations and (stall >= stall_iterations or spread < spread_tolerance):
+            converged = True
+            break
+    return SwarmResult(g_x, g_f, iterations, evaluations, converged, history)
+
+
+def pattern_search(objective: BatchObjective, x0: NDArray[np.floating], step: NDArray[np.floating],
+                   lower: NDArray[np.floating], upper: NDArray[np.floating], min_step_fraction: float = 0.01,
+                   max_iterations: int = 200, score_at_x0: float | None = None) -> SwarmResult:
+    """Batched compass search from ``x0``: score x +- step along every axis (2 D candidates in one
+    call), move to the best if it improves, otherwise halve the step; stop when every step is below
+    ``min_step_fraction`` of its initial value. Positions stay inside the box."""
+    lo = np.asarray(lower, dtype=np.float64)
+    hi = np.asarray(upper, dtype=np.float64)
+    _check_box(lo, hi)
+    x = np.clip(np.asarray(x0, dtype=np.float64), lo, hi)
+    s = np.asarray(step, dtype=np.float64).copy()
+    s_min = s * min_step_fraction
+    dim = x.size
+    f_x = float(objective(x[None])[0]) if score_at_x0 is None else float(score_at_x0)
+    evaluations = 0 if score_at_x0 is not None else 1
+    history = [f_x]
+    iterations = 0
+    converged = False
+    eye = np.eye(dim)
+    while iterations < max_iterations:
+        iterations += 1
+        cand = np.clip(np.concatenate([x + eye * s, x - eye * s]), lo, hi)
+        f = np.asarray(objective(cand), dtype=np.float64)
+        evaluations += cand.shape[0]
+        i = int(np.argmax(f))
+        if f[i] > f_x:
+            x, f_x = cand[i].copy(), float(f[i])
+        else:
+            s *= 0.5
+        history.append(f_x)
+        if np.all(s < s_min):
+            converged = True
+            break
+    return SwarmResult(x, f_x, iterations, evaluations, converged, history)

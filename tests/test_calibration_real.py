@@ -1,0 +1,129 @@
+"""GOM calibration on the real logs in ../shared/data/logs against their ``.truth.json`` references.
+
+Each test skips with a reason when the data is absent. ``load_real_frames`` is also used by
+``benchmarks/bench_gom.py``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from pipeline.errors import ProcessingError
+from pipeline.pairing import iter_pairs
+from pipeline.transforms import invert, rotation_error_deg, translation_error_m
+from readers.frames import load_tf_tree
+from readers.open import open_log
+from stages.calibration import CalibrationConfig, CalibrationFrame, calibrate
+from stages.calibration.calibrator import build_frame
+from tests.conftest import SHARED_DATA
+
+LOGS = SHARED_DATA / "logs"
+
+
+@dataclass
+class RealProblem:
+    """Frames of a real log, the log's tf guess and the reference, for the first camera."""
+
+    frames: list[CalibrationFrame]
+    T_init: NDArray[np.float64]
+    T_true: NDArray[np.float64]
+
+
+def log_path(name: str) -> Path:
+    path = LOGS / name
+    if not path.exists():
+        pytest.skip(f"real log {path} not present (../shared/data/logs next to the repository)")
+    return path
+
+
+def load_real_frames(name: str, feature: str = "range", cameras: int = 1, ego_motion: bool = False,
+                     max_frames: int | None = None, tolerance_ns: int = 100_000_000,
+                     blur_sigma_px: float | None = None) -> RealProblem:
+    """Paired frames of ``name`` for its first ``cameras`` camera topics (joint when > 1: camera k
+    gets ``T_camera_k_camera0`` from the log's tf), with ego-motion from ``/tf`` when asked."""
+    path = LOGS / name
+    stem = name.removesuffix(".mcap").removesuffix(".bag")
+    truth = json.loads((LOGS / f"{stem}.truth.json").read_text())
+    lidar_topic, lidar_frame = truth["lidar_topic"], truth["lidar_frame"]
+    pairs = truth["pairs"][:cameras]
+    reader = open_log(path)
+    try:
+        tree = load_tf_tree(reader)
+        cam0 = pairs[0]["camera_frame"]
+        T_init = tree.lookup(cam0, lidar_frame)
+        frames: list[CalibrationFrame] = []
+        for pair in pairs:
+            T_c_c0 = tree.lookup(pair["camera_frame"], cam0)
+            paired = iter_pairs(reader, lidar_topic, pair["camera_topic"], tolerance_ns, max_frames)
+            for lidar, camera in paired:
+                motion = None
+                if ego_motion:
+                    T_odom_lidar_scan = tree.lookup("odom", lidar_frame, lidar.stamp_ns)
+                    T_odom_lidar_cam = tree.lookup("odom", lidar_frame, camera.stamp_ns)
+                    motion = invert(T_odom_lidar_cam) @ T_odom_lidar_scan
+                frames.append(build_frame(lidar, camera, feature, blur_sigma_px, T_camera_camera0=T_c_c0,
+                                          T_lidar_motion=motion))
+    finally:
+        close = getattr(reader, "close", None)
+        if close is not None:
+            close()
+    return RealProblem(frames, T_init, np.asarray(pairs[0]["T_camera_lidar"], dtype=np.float64))
+
+
+def errors(T: NDArray[np.float64], T_true: NDArray[np.float64]) -> tuple[float, float]:
+    return rotation_error_deg(T, T_true), translation_error_m(T, T_true)
+
+
+def test_kitti_default_settings_from_log_tf() -> None:
+    log_path("kitti_2011_09_26.mcap")
+    problem = load_real_frames("kitti_2011_09_26.mcap")
+    assert len(problem.frames) == 2
+    rot0, trans0 = errors(problem.T_init, problem.T_true)
+    assert rot0 > 1.5 and trans0 > 0.1  # the log's tf is the drifted calibration
+    result = calibrate(problem.frames, problem.T_init, CalibrationConfig())
+    rot, trans = errors(result.T_camera_lidar, problem.T_true)
+    assert rot <= 0.3, f"rotation error {rot:.3f} deg"
+    assert trans <= 0.10, f"translation error {trans:.3f} m"
+    assert result.score > result.initial_score
+    assert result.verdict == "recalibrated"
+    assert result.runtime_s < 60
+
+
+def test_kitti_search_box_away_from_the_scan_is_a_clear_error() -> None:
+    log_path("kitti_2011_09_26.mcap")
+    problem = load_real_frames("kitti_2011_09_26.mcap")
+    T_up = np.asarray(problem.T_init).copy()
+    # camera turned to look at the sky
+    T_up[:3, :3] = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]]) @ T_up[:3, :3]
+    with pytest.raises(ProcessingError, match="lidar points"):
+        calibrate(problem.frames, T_up, CalibrationConfig(search_deg=2.0, search_m=0.2, n_particles=20))
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(reason="not reached yet: GOM on pjlab_road_rig1 lands 2-7 deg / 0.3-0.8 m off the vendor "
+                          "reference for every feature and blur tried (see benchmarks/bench_gom.py)", strict=False)
+def test_pjlab_two_frames_with_distortion() -> None:
+    log_path("pjlab_road_rig1")
+    problem = load_real_frames("pjlab_road_rig1")
+    assert len(problem.frames) == 2
+    assert np.any(problem.frames[0].camera.D)
+    result = calibrate(problem.frames, problem.T_init, CalibrationConfig())
+    rot, trans = errors(result.T_camera_lidar, problem.T_true)
+    assert rot <= 0.5, f"rotation error {rot:.3f} deg"
+    assert trans <= 0.15, f"translation error {trans:.3f} m"
+
+
+@pytest.mark.slow
+def test_nuscenes_six_cameras_joint_with_ego_motion() -> None:
+    log_path("nuscenes_n015.bag")
+    problem = load_real_frames("nuscenes_n015.bag", cameras=6, ego_motion=True)
+    assert len(problem.frames) == 6
+    result = calibrate(problem.frames, problem.T_init, CalibrationConfig())
+    rot, _ = errors(result.T_camera_lidar, problem.T_true)
+    assert rot <= 0.6, f"rotation error {rot:.3f} deg"

@@ -1,0 +1,254 @@
+"""numba metric kernels against slow NumPy references, and the GOM landscape on a synthetic scene."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from pipeline.camera_model import CameraModel
+from pipeline.errors import ProcessingError
+from pipeline.transforms import apply, from_xyz_rpy
+from stages.calibration import (
+    CalibrationConfig,
+    CalibrationProblem,
+    GomScorer,
+    LevinsonScorer,
+    NmiScorer,
+    calibrate_affine,
+    compute_sphere_gradients,
+    score_landscape,
+)
+from stages.calibration.affine import affine_matrices
+from stages.calibration.metrics import gom_reference, project_points, sample_bicubic
+from stages.calibration.sphere_gradients import sphere_coordinates, sphere_neighbours
+from stages.image_gradients import compute_image_gradients
+from tests.test_calibration_synthetic import (
+    make_scene,
+    render_image,
+    synthetic_camera,
+    synthetic_frame,
+    true_T_camera_lidar,
+)
+
+K = np.array([[600.0, 0.3, 330.0], [0.0, 590.0, 245.0], [0.0, 0.0, 1.0]])
+CAMERAS = {
+    "none": CameraModel(640, 480, K, np.zeros(0), "none"),
+    "plumb_bob": CameraModel(640, 480, K, np.array([-0.28, 0.09, 0.001, -0.0015, -0.01]), "plumb_bob"),
+    "rational_polynomial": CameraModel(
+        640, 480, K, np.array([0.5, -0.1, 0.001, 0.002, 0.01, 0.8, -0.05, 0.02]), "rational_polynomial"),
+    "equidistant": CameraModel(640, 480, np.array([[280.0, 0, 320], [0, 280.0, 240], [0, 0, 1]]),
+                               np.array([0.05, -0.01, 0.002, -0.0005]), "equidistant"),
+    "cylindrical": CameraModel(2000, 500, np.array([[318.0, 0, 1000], [0, 300.0, 250], [0, 0, 1]]),
+                               np.zeros(0), "cylindrical"),
+}
+
+
+def random_points(n: int, seed: int) -> NDArray[np.float64]:
+    """Points all around the camera, including behind it and on its axis."""
+    rng = np.random.default_rng(seed)
+    pts = rng.standard_normal((n, 3)) * [4.0, 3.0, 6.0] + [0.0, 0.0, 3.0]
+    pts[0] = [0.0, 0.0, 5.0]
+    pts[1] = [0.0, 0.0, -5.0]
+    return pts
+
+
+@pytest.mark.parametrize("model", list(CAMERAS))
+def test_projection_matches_camera_model(model: str) -> None:
+    camera = CAMERAS[model]
+    pts = random_points(4000, seed=1)
+    uv_ref, valid_ref = camera.project(pts)
+    uv, valid = project_points(pts, camera)
+    assert valid.sum() > 300
+    np.testing.assert_array_equal(valid, valid_ref)
+    np.testing.assert_allclose(uv[valid], uv_ref[valid], atol=1e-9)
+
+
+def keys_reference(t: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Keys (a = -0.5) kernel value at distance t."""
+    a = -0.5
+    t = np.abs(t)
+    return np.where(t <= 1, (a + 2) * t**3 - (a + 3) * t**2 + 1,
+                    np.where(t < 2, a * t**3 - 5 * a * t**2 + 8 * a * t - 4 * a, 0.0))
+
+
+def bicubic_reference(image: NDArray[np.float64], uv: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Slow Keys bicubic: sum over the 4x4 taps with the kernel evaluated at true distances."""
+    h, w = image.shape
+    out = np.zeros(len(uv))
+    for k, (u, v) in enumerate(uv):
+        iu, iv = int(np.floor(u)), int(np.floor(v))
+        for row in range(iv - 1, iv + 3):
+            for col in range(iu - 1, iu + 3):
+                weight = keys_reference(np.array(u - col)) * keys_reference(np.array(v - row))
+                out[k] += weight * image[min(max(row, 0), h - 1), min(max(col, 0), w - 1)]
+    return out
+
+
+def test_bicubic_matches_reference_and_reproduces_cubics() -> None:
+    rng = np.random.default_rng(2)
+    image = rng.standard_normal((30, 40))
+    uv = np.column_stack([rng.uniform(-0.5, 39.5, 500), rng.uniform(-0.5, 29.5, 500)])
+    uv[:4] = np.array([[0, 0], [39, 29], [10.0, 12.0], [17.25, 3.75]])
+    ref = bicubic_reference(image, uv)
+    got = sample_bicubic(image, uv)[:, 0]
+    np.testing.assert_allclose(got, ref, atol=1e-10)
+    assert got[2] == pytest.approx(image[12, 10])  # interpolating: exact at pixel centres
+    # Keys a=-0.5 reproduces quadratics exactly away from the border
+    vv, uu = np.mgrid[0:30, 0:40].astype(np.float64)
+    quad = 0.5 * uu**2 - 0.3 * uu * vv + 2 * vv + 1
+    inner = np.column_stack([rng.uniform(2, 37, 200), rng.uniform(2, 27, 200)])
+    truth = 0.5 * inner[:, 0] ** 2 - 0.3 * inner[:, 0] * inner[:, 1] + 2 * inner[:, 1] + 1
+    np.testing.assert_allclose(sample_bicubic(quad, inner)[:, 0], truth, atol=1e-9)
+    # two channels, constant image
+    planes = np.stack([np.full((30, 40), 3.0), np.full((30, 40), -1.0)], axis=2)
+    np.testing.assert_allclose(sample_bicubic(planes, uv), np.tile([3.0, -1.0], (len(uv), 1)), atol=1e-12)
+
+
+def gom_numpy(points: NDArray[np.float64], lgx: NDArray[np.float64], lgy: NDArray[np.float64],
+              lmag: NDArray[np.float64], igx: NDArray[np.float64], igy: NDArray[np.float64],
+              camera: CameraModel, T: NDArray[np.float64]) -> tuple[float, int]:
+    """Reference GOM: CameraModel.project, reference bicubic, explicit angles (eq. 9-11)."""
+    uv, valid = camera.project(apply(T, points))
+    h, w = igx.shape
+    valid &= (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+    gx = bicubic_reference(igx, uv[valid])
+    gy = bicubic_reference(igy, uv[valid])
+    return gom_reference(lgx[valid], lgy[valid], lmag[valid], gx, gy), int(valid.sum())
+
+
+@pytest.mark.parametrize("model", ["plumb_bob", "equidistant", "cylindrical"])
+def test_gom_kernel_matches_numpy_reference(model: str) -> None:
+    camera = CAMERAS[model]
+    rng = np.random.default_rng(3)
+    pts = random_points(800, seed=4)
+    lgx, lgy, lmag = rng.standard_normal(800), rng.standard_normal(800), rng.random(800)
+    shape = (camera.height, camera.width)
+    igx = np.asarray(cv2.GaussianBlur(rng.standard_normal(shape), (0, 0), 2.0), dtype=np.float64)
+    igy = np.asarray(cv2.GaussianBlur(rng.standard_normal(shape), (0, 0), 2.0), dtype=np.float64)
+    scorer = GomScorer(pts, lgx, lgy, lmag, igx, igy, camera)
+    poses = np.stack([np.eye(4), from_xyz_rpy(0.1, -0.05, 0.2, 3, -2, 10), from_xyz_rpy(0, 0, 0, 0, 90, 0)])
+    batch = scorer.score(poses)
+    for k, T in enumerate(poses):
+        ref, n = gom_numpy(pts, lgx, lgy, lmag, igx, igy, camera, T)
+        assert batch.counts[k] == n
+        assert batch.scores[k] == pytest.approx(ref, abs=1e-9)
+    # aligned gradients score 1, perpendicular 0, uncorrelated about 0.5
+    uv, valid = camera.project(pts)
+    inside = valid & (uv[:, 0] <= camera.width - 1) & (uv[:, 1] <= camera.height - 1)
+    g = sample_bicubic(np.stack([igx, igy], 2), uv[inside])
+    assert gom_reference(g[:, 0], g[:, 1], np.ones(len(g)), -g[:, 0], -g[:, 1]) == pytest.approx(1.0)
+    perpendicular = gom_reference(-g[:, 1], g[:, 0], np.ones(len(g)), g[:, 0], g[:, 1])
+    assert perpendicular == pytest.approx(0.0, abs=1e-12)
+    assert batch.scores[0] == pytest.approx(0.5, abs=0.1)  # unrelated gradients: chance level
+
+
+def test_gom_empty_and_bad_inputs() -> None:
+    camera = CAMERAS["plumb_bob"]
+    zeros = np.zeros((camera.height, camera.width))
+    behind = np.array([[0.0, 0.0, -5.0]] * 3)
+    batch = GomScorer(behind, np.ones(3), np.ones(3), np.ones(3), zeros, zeros, camera).score(np.eye(4))
+    assert batch.counts[0] == 0 and batch.scores[0] == 0.0
+    with pytest.raises(ProcessingError, match="NaN"):
+        GomScorer(np.array([[np.nan, 0, 1.0]]), np.ones(1), np.ones(1), np.ones(1), zeros, zeros, camera)
+    with pytest.raises(ProcessingError, match="does not match camera"):
+        GomScorer(behind, np.ones(3), np.ones(3), np.ones(3), zeros[:10], zeros[:10], camera)
+    with pytest.raises(ProcessingError, match="values for"):
+        GomScorer(behind, np.ones(2), np.ones(3), np.ones(3), zeros, zeros, camera)
+
+
+def test_nmi_and_levinson_match_numpy_reference() -> None:
+    camera = CAMERAS["none"]
+    rng = np.random.default_rng(5)
+    pts = random_points(3000, seed=6)
+    values = rng.random(3000)
+    intensity = np.clip(cv2.GaussianBlur(rng.random((480, 640)), (0, 0), 3.0) * 2 - 0.5, 0, 1)
+    T = from_xyz_rpy(0.05, 0, 0, 1, 2, -1)
+    uv, valid = camera.project(apply(T, pts))
+    valid &= (uv[:, 0] <= 639) & (uv[:, 1] <= 479)
+    sampled = bicubic_reference(intensity, uv[valid])
+    bins = 16
+    hist, _, _ = np.histogram2d(np.clip((values[valid] * bins).astype(int), 0, bins - 1),
+                                np.clip((sampled * bins).astype(int), 0, bins - 1), bins=bins,
+                                range=[[0, bins], [0, bins]])
+    p = hist / hist.sum()
+
+    def entropy(q: NDArray[np.float64]) -> float:
+        q = q[q > 0]
+        return float(-np.sum(q * np.log(q)))
+
+    nmi_ref = (entropy(p.sum(1)) + entropy(p.sum(0))) / entropy(p.ravel())
+    nmi = NmiScorer(pts, values, intensity, camera, bins=bins).score(T)
+    assert nmi.scores[0] == pytest.approx(nmi_ref, rel=1e-9)
+    assert 1.0 <= nmi.scores[0] <= 2.0
+    lev = LevinsonScorer(pts, values, intensity, camera).score(T)
+    assert lev.scores[0] == pytest.approx(np.sum(values[valid] * sampled) / values.sum(), rel=1e-9)
+
+
+def test_sphere_gradients_follow_image_axes() -> None:
+    """A value ramp increasing to the right (camera +x) gives gradients pointing along +u, and a ramp
+    increasing downwards gives +v: the sphere is oriented like the image."""
+    az, el = np.meshgrid(np.radians(np.linspace(-20, 20, 81)), np.radians(np.linspace(-10, 10, 41)))
+    pts_cam = np.column_stack([np.sin(az.ravel()) * np.cos(el.ravel()), np.sin(el.ravel()),
+                               np.cos(az.ravel()) * np.cos(el.ravel())]) * 10.0
+    T = true_T_camera_lidar()
+    pts_lidar = apply(np.asarray(np.linalg.inv(T), dtype=np.float64), pts_cam)
+    right = compute_sphere_gradients(pts_lidar, pts_cam[:, 0], T)
+    down = compute_sphere_gradients(pts_lidar, pts_cam[:, 1], T)
+    inner = (np.abs(az.ravel()) < np.radians(18)) & (np.abs(el.ravel()) < np.radians(8))
+    assert np.all(np.abs(np.cos(right.orientation[inner])) > 0.99) and np.all(right.gx[inner] > 0)
+    assert np.all(np.abs(np.sin(down.orientation[inner])) > 0.99) and np.all(down.gy[inner] > 0)
+    # Algorithm 1 by hand for one point
+    uvs = sphere_coordinates(pts_cam)
+    nb = sphere_neighbours(uvs, 8)
+    i = int(np.flatnonzero(inner)[10])
+    d = uvs[i] - uvs[nb[i]]
+    dv = pts_cam[i, 0] - pts_cam[nb[i], 0]
+    assert right.gx[i] == pytest.approx(np.sum(dv * d[:, 0]) / 8)
+    assert right.magnitude[i] == pytest.approx(np.sum(np.abs(dv)) / 8)
+
+
+def test_gom_is_maximal_at_truth_on_synthetic_scene() -> None:
+    frame = synthetic_frame(0, blur_sigma_px=2.0)
+    T_true = true_T_camera_lidar()
+    problem = CalibrationProblem([frame], T_true, CalibrationConfig(search_deg=3.0, search_m=0.3))
+    at_truth = problem.evaluate(np.zeros((1, 6)))[0]
+    assert at_truth > 0.75
+    rng = np.random.default_rng(7)
+    off = []
+    for _ in range(12):
+        x = np.zeros(6)
+        axis = rng.standard_normal(3)
+        x[:3] = axis / np.linalg.norm(axis) * 1.0  # 1 degree
+        off.append(x)
+        y = np.zeros(6)
+        shift = rng.standard_normal(3)
+        y[3:] = shift / np.linalg.norm(shift) * 0.05  # 5 cm
+        off.append(y)
+    scores = problem.evaluate(np.array(off))
+    assert np.all(scores < at_truth), scores
+    assert at_truth - scores.max() > 0.002
+    land = score_landscape(problem, np.zeros(6), axes=(0, 1), half_width=(2.0, 2.0), steps=9)
+    assert land.argmax_offsets() == (0.0, 0.0)
+    assert land.scores.shape == (9, 9)
+
+
+def test_affine_camera_camera_recovers_known_warp() -> None:
+    camera = synthetic_camera()
+    image = render_image(make_scene(4), camera, true_T_camera_lidar())
+    params = np.array([6.0, -4.0, 1.5, 1.02, 0.99, 0.01])
+    centre = ((camera.width - 1) / 2, (camera.height - 1) / 2)
+    A = affine_matrices(params, centre)[0]
+    moving = cv2.warpAffine(image, cv2.invertAffineTransform(A), (camera.width, camera.height),
+                            flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    moving = 255 - moving  # the other modality: inverted contrast
+    base = compute_image_gradients(image, blur_sigma_px=1.5)
+    mov = compute_image_gradients(moving, blur_sigma_px=1.5)
+    result = calibrate_affine(base.gx, base.gy, mov.gx, mov.gy, search_px=12, search_deg=3,
+                              keep_fraction=0.05, n_particles=60, max_iterations=60, seed=0)
+    grid = np.array([[100.0, 100.0], [500.0, 100.0], [320.0, 400.0]])
+    mapped_true = grid @ A[:, :2].T + A[:, 2]
+    mapped = grid @ result.A_base_moving[:, :2].T + result.A_base_moving[:, 2]
+    assert np.max(np.linalg.norm(mapped - mapped_true, axis=1)) < 0.5
+    assert result.score > result.initial_score

@@ -1,0 +1,79 @@
+"""Particle swarm and pattern search on test functions with known optima."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from pipeline.errors import ConfigError
+from stages.calibration import particle_swarm, pattern_search
+
+OPTIMUM = np.array([1.5, -2.0, 0.25, 3.0, -0.5, 0.0])
+
+
+def neg_rastrigin(x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Negated Rastrigin shifted to OPTIMUM: maximum 0 there, many local maxima around it."""
+    d = x - OPTIMUM
+    return -np.sum(d * d - 2.0 * np.cos(2 * np.pi * d) + 2.0, axis=1)
+
+
+def neg_sphere(x: NDArray[np.float64]) -> NDArray[np.float64]:
+    return -np.sum((x - OPTIMUM) ** 2, axis=1)
+
+
+BOX = (OPTIMUM - 4.0 + 0.7, OPTIMUM + 4.0 + 0.3)  # optimum off centre
+
+
+def test_swarm_finds_global_optimum_of_multimodal_function() -> None:
+    calls: list[int] = []
+
+    def objective(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        calls.append(x.shape[0])
+        assert np.all(x >= BOX[0]) and np.all(x <= BOX[1])
+        return neg_rastrigin(x)
+
+    result = particle_swarm(objective, *BOX, n_particles=200, max_iterations=200, seed=3)
+    assert np.max(np.abs(result.best_x - OPTIMUM)) < 0.05
+    assert result.best_score > -0.05
+    assert all(n == 200 for n in calls)  # one batch per iteration
+    assert result.evaluations == sum(calls)
+    assert np.all(np.diff(result.history) >= 0)  # the global best never gets worse
+
+
+def test_swarm_is_deterministic_per_seed_and_differs_across_seeds() -> None:
+    a = particle_swarm(neg_rastrigin, *BOX, n_particles=50, max_iterations=30, seed=7)
+    b = particle_swarm(neg_rastrigin, *BOX, n_particles=50, max_iterations=30, seed=7)
+    c = particle_swarm(neg_rastrigin, *BOX, n_particles=50, max_iterations=30, seed=8)
+    np.testing.assert_array_equal(a.best_x, b.best_x)
+    assert a.history == b.history
+    assert not np.array_equal(a.best_x, c.best_x)
+
+
+def test_swarm_stops_when_converged() -> None:
+    result = particle_swarm(neg_sphere, *BOX, n_particles=100, max_iterations=500, stall_iterations=10,
+                            score_tolerance=1e-9, seed=0)
+    assert result.converged
+    assert result.iterations < 500
+    assert np.max(np.abs(result.best_x - OPTIMUM)) < 1e-3
+
+
+def test_initial_particle_is_kept_when_best() -> None:
+    result = particle_swarm(neg_sphere, *BOX, n_particles=10, max_iterations=1, seed=0, x_initial=OPTIMUM)
+    np.testing.assert_array_equal(result.best_x, OPTIMUM)
+    assert result.best_score == 0.0
+
+
+def test_pattern_search_polishes_to_optimum() -> None:
+    start = OPTIMUM + np.array([0.3, -0.2, 0.1, 0.05, -0.3, 0.2])
+    result = pattern_search(neg_sphere, start, np.full(6, 0.5), *BOX, min_step_fraction=1e-4)
+    assert result.converged
+    np.testing.assert_allclose(result.best_x, OPTIMUM, atol=1e-3)
+    assert result.best_score >= float(neg_sphere(start[None])[0])
+
+
+def test_bad_box_is_a_config_error() -> None:
+    with pytest.raises(ConfigError, match="lower < upper"):
+        particle_swarm(neg_sphere, np.zeros(6), np.zeros(6))
+    with pytest.raises(ConfigError, match="particles"):
+        particle_swarm(neg_sphere, *BOX, n_particles=1)
