@@ -102,7 +102,7 @@ class CalibrationConfig:
         iterations: particle swarm iterations.
         search_deg: half-width of the rotation search around the initial guess, degrees.
         search_m: half-width of the translation search, metres.
-        blur_sigma_px: Gaussian blur of camera images before the Sobel, pixels.
+        blur_sigma_px: Gaussian blur of camera images before the Sobel, pixels (0: max(2, width / 620)).
         k_neighbours: neighbours for lidar normals and sphere gradients.
         seed: random seed.
         repeats: seeded optimiser runs; their spread is the reported uncertainty.
@@ -113,17 +113,17 @@ class CalibrationConfig:
     """
 
     metric: Literal["gom", "nmi", "levinson"] = "gom"
-    feature: Literal["intensity", "range", "normals"] = "intensity"
+    feature: Literal["intensity", "range", "normals", "log_range"] = "range"
     frames: int = 10
     particles: int = 200
     iterations: int = 100
     search_deg: float = 5.0
-    search_m: float = 0.2
-    blur_sigma_px: float = 1.0
+    search_m: float = 0.5
+    blur_sigma_px: float = 0.0
     k_neighbours: int = 8
     seed: int = 0
     repeats: int = 1
-    keep_fraction: float = 1.0
+    keep_fraction: float = 0.5
     estimate_focal: bool = False
     min_points: int = 100
     motion_compensation: bool = True

@@ -169,8 +169,131 @@ def normal_ray_angles(
         angles_out[i] = math.acos(min(1.0, cosang))
 
 
+@njit(**NJIT_FLAGS)
+def grid_neighbours(
+    points_xyz: np.ndarray,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    n_rows: int,
+    n_cols: int,
+    k: int,
+    half_rows: int,
+    half_cols: int,
+    max_range_jump: float,
+    sensor_xyz: np.ndarray,
+    neighbours_out: np.ndarray,
+) -> None:
+    """k nearest neighbours of each point among the points of a small range-image window.
+
+    Points are binned into cells ``(row, col)`` (row: laser ring or elevation bin, col: azimuth bin,
+    wrapping around); each point's candidates are the points of the cells within ``half_rows`` rows
+    and ``half_cols`` columns of its own cell whose range (distance to the sensor) differs from the
+    point's by at most ``max_range_jump`` times the point's range. The k candidates nearest in 3D
+    (Euclidean) are written nearest first.
+
+    Args:
+        points_xyz: (N, 3) float64 finite points, metres.
+        rows: (N,) int64 in [0, n_rows).
+        cols: (N,) int64 in [0, n_cols).
+        n_rows, n_cols: grid size.
+        k: neighbours per point.
+        half_rows, half_cols: window half sizes in cells.
+        max_range_jump: relative range gate (e.g. 0.3); ``inf`` disables it.
+        sensor_xyz: (3,) float64 sensor origin.
+        neighbours_out: (N, k) int64 output, indices nearest first, ``-1`` where fewer than k
+            candidates exist (the point itself is never listed).
+    """
+    n = points_xyz.shape[0]
+    n_cells = n_rows * n_cols
+    # counting sort by cell: every row's azimuth window is then one contiguous run (two at the wrap)
+    cell_start = np.zeros(n_cells + 1, dtype=np.int64)
+    for i in range(n):
+        cell_start[rows[i] * n_cols + cols[i] + 1] += 1
+    for c in range(n_cells):
+        cell_start[c + 1] += cell_start[c]
+    fill = cell_start[:-1].copy()
+    order = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        c = rows[i] * n_cols + cols[i]
+        order[fill[c]] = i
+        fill[c] += 1
+    xyz = np.empty((n, 3))
+    ranges = np.empty(n)
+    for a in range(n):
+        i = order[a]
+        xyz[a, 0] = points_xyz[i, 0]
+        xyz[a, 1] = points_xyz[i, 1]
+        xyz[a, 2] = points_xyz[i, 2]
+        dx = points_xyz[i, 0] - sensor_xyz[0]
+        dy = points_xyz[i, 1] - sensor_xyz[1]
+        dz = points_xyz[i, 2] - sensor_xyz[2]
+        ranges[a] = math.sqrt(dx * dx + dy * dy + dz * dz)
+    best_d = np.empty(k)
+    best_a = np.empty(k, dtype=np.int64)
+    seg_lo = np.empty(2, dtype=np.int64)
+    seg_hi = np.empty(2, dtype=np.int64)
+    for a in range(n):
+        i = order[a]
+        for j in range(k):
+            best_d[j] = np.inf
+            best_a[j] = -1
+        px = xyz[a, 0]
+        py = xyz[a, 1]
+        pz = xyz[a, 2]
+        ra = ranges[a]
+        gate = max_range_jump * ra
+        col = cols[i]
+        r_lo = max(0, rows[i] - half_rows)
+        r_hi = min(n_rows - 1, rows[i] + half_rows)
+        for r in range(r_lo, r_hi + 1):
+            base = r * n_cols
+            n_seg = 1
+            if 2 * half_cols + 1 >= n_cols:
+                seg_lo[0] = cell_start[base]
+                seg_hi[0] = cell_start[base + n_cols]
+            else:
+                c0 = col - half_cols
+                c1 = col + half_cols
+                if c0 < 0:
+                    seg_lo[0] = cell_start[base]
+                    seg_hi[0] = cell_start[base + c1 + 1]
+                    seg_lo[1] = cell_start[base + n_cols + c0]
+                    seg_hi[1] = cell_start[base + n_cols]
+                    n_seg = 2
+                elif c1 >= n_cols:
+                    seg_lo[0] = cell_start[base + c0]
+                    seg_hi[0] = cell_start[base + n_cols]
+                    seg_lo[1] = cell_start[base]
+                    seg_hi[1] = cell_start[base + c1 - n_cols + 1]
+                    n_seg = 2
+                else:
+                    seg_lo[0] = cell_start[base + c0]
+                    seg_hi[0] = cell_start[base + c1 + 1]
+            for g in range(n_seg):
+                for b in range(seg_lo[g], seg_hi[g]):
+                    if b == a or abs(ranges[b] - ra) > gate:
+                        continue
+                    dx = xyz[b, 0] - px
+                    dy = xyz[b, 1] - py
+                    dz = xyz[b, 2] - pz
+                    d2 = dx * dx + dy * dy + dz * dz
+                    if d2 >= best_d[k - 1]:
+                        continue
+                    pos = k - 1
+                    while pos > 0 and best_d[pos - 1] > d2:
+                        best_d[pos] = best_d[pos - 1]
+                        best_a[pos] = best_a[pos - 1]
+                        pos -= 1
+                    best_d[pos] = d2
+                    best_a[pos] = b
+        for j in range(k):
+            neighbours_out[i, j] = order[best_a[j]] if best_a[j] >= 0 else -1
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel of this module on tiny inputs."""
     pts = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
     nbr = np.array([[0, 1, 2], [1, 0, 2], [2, 0, 1]], dtype=np.int64)
     normal_ray_angles(pts, nbr, 2, np.zeros(3), np.empty((3, 3)), np.empty(3))
+    zeros = np.zeros(3, dtype=np.int64)
+    grid_neighbours(pts, zeros, zeros, 1, 1, 2, 1, 1, np.inf, np.zeros(3), np.empty((3, 2), dtype=np.int64))

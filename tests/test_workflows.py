@@ -163,3 +163,40 @@ def test_cli_errors_are_one_line(
     err = capsys.readouterr().err.strip().splitlines()
     assert got == code
     assert len(err) == 1 and err[0].startswith("error: ") and message in err[0], err
+
+
+def _calibrate_json(capsys: pytest.CaptureFixture[str], argv: list[str]) -> dict:
+    assert main([*argv, "--json", "-q", "--no-report"]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def test_calibrate_kitti_from_log_tf(shared_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Default settings, initial guess from the log's tf (2 deg / 12.7 cm off): <= 0.3 deg, <= 10 cm."""
+    truth = json.loads((shared_data / "logs" / "kitti_2011_09_26.truth.json").read_text())["pairs"][0]
+    result = _calibrate_json(capsys, ["calibrate", str(shared_data / "logs" / "kitti_2011_09_26.mcap"),
+                                      "--out", str(tmp_path)])  # fmt: skip
+    T = np.asarray(result["pairs"][0]["T_camera_lidar"])
+    assert rotation_error_deg(T, np.asarray(truth["T_camera_lidar"])) <= 0.3
+    assert translation_error_m(T, np.asarray(truth["T_camera_lidar"])) <= 0.10
+    assert result["pairs"][0]["verdict"] == "recalibrated"
+
+
+def test_calibrate_nuscenes_joint_with_ego_motion(
+    shared_data: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Six cameras, one unknown lidar pose, ego-motion from /tf: <= 0.6 deg; without it, worse."""
+    log = shared_data / "logs" / "nuscenes_n015.bag"
+    truth = json.loads((shared_data / "logs" / "nuscenes_n015.truth.json").read_text())["pairs"]
+    cameras = [a for p in truth for a in ("--camera", p["camera_topic"])]
+    T_true = {p["camera_topic"]: np.asarray(p["T_camera_lidar"]) for p in truth}
+
+    def worst(result: dict) -> float:
+        return max(rotation_error_deg(np.asarray(p["T_camera_lidar"]), T_true[p["camera_topic"]])
+                   for p in result["pairs"])  # fmt: skip
+
+    compensated = _calibrate_json(capsys, ["calibrate", str(log), *cameras, "--joint", "--out", str(tmp_path / "a")])
+    assert all(p["motion_compensated"] for p in compensated["pairs"]) and len(compensated["pairs"]) == 6
+    raw = _calibrate_json(capsys, ["calibrate", str(log), *cameras, "--joint", "--no-motion-compensation",
+                                   "--out", str(tmp_path / "b")])  # fmt: skip
+    assert worst(compensated) <= 0.6
+    assert worst(raw) > worst(compensated)

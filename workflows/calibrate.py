@@ -35,9 +35,7 @@ from pipeline.transforms import (
 from readers.base import LogReader
 from readers.frames import load_tf_tree
 from stages.calibration.calibrator import CalibrationConfig as SolverConfig
-from stages.calibration.calibrator import CalibrationFrame, CalibrationResult, calibrate
-from stages.image_gradients import compute_image_gradients, to_grey_u8
-from stages.lidar_features import compute_lidar_feature
+from stages.calibration.calibrator import CalibrationFrame, CalibrationResult, build_frame, calibrate
 from stages.sinks import report
 from stages.sinks.tables import CALIBRATION_SCHEMA, FRAMES_SCHEMA, write_rows
 
@@ -103,13 +101,6 @@ def parse_initial(text: str) -> Mat4:
     return from_xyz_rpy(*values)
 
 
-def blur_sigma_for(width: int, configured: float) -> float:
-    """Gaussian blur before the Sobel: ``configured`` px, or (0) scaled with the image width."""
-    if configured > 0:
-        return configured
-    return width / 620.0
-
-
 def solver_config(config: Config) -> SolverConfig:
     c = config.calibration
     return SolverConfig(
@@ -147,31 +138,15 @@ def make_frame(
     camera: CameraFrame,
     feature_kind: str,
     blur_sigma_px: float,
-    k: int,
     T_lidar_motion: Mat4 | None,
 ) -> CalibrationFrame:
-    """Per-frame stage: lidar feature and image gradients of one pair."""
+    """Per-frame stage: lidar feature and image gradients of one pair (``blur_sigma_px`` 0: by width)."""
     if camera.camera is None:
-        raise InputError(f"camera {camera.topic} has no CameraInfo in the log")
-    points = np.asarray(lidar.points_xyz, dtype=np.float64)
-    if points.shape[0] == 0:
+        raise InputError(f"camera {camera.topic} has no CameraInfo in the log (or its K is unusable)")
+    if lidar.n_points == 0:
         raise InputError(f"lidar scan at {lidar.stamp_ns} has no valid points")
-    feature = compute_lidar_feature(points, feature_kind, intensity=lidar.channel("intensity"), k=k)  # type: ignore[arg-type]
-    keep = np.isfinite(feature)
-    gradients = compute_image_gradients(
-        camera.image, blur_sigma_px=blur_sigma_for(camera.width, blur_sigma_px)
-    )
-    grey = to_grey_u8(camera.image).astype(np.float32) / 255.0
-    return CalibrationFrame(
-        points_xyz=points[keep],
-        feature=feature[keep],
-        camera=camera.camera,
-        gradients=gradients,
-        intensity=grey,
-        T_lidar_motion=T_lidar_motion,
-        stamp_ns=camera.stamp_ns,
-        label=camera.topic,
-    )
+    return build_frame(lidar, camera, feature_kind, blur_sigma_px if blur_sigma_px > 0 else None,
+                       T_lidar_motion=T_lidar_motion)  # fmt: skip
 
 
 @dataclass
@@ -210,7 +185,7 @@ def collect_frames(
             _motion(tree, out.lidar_frame, lidar.stamp_ns, camera.stamp_ns) if c.motion_compensation else None
         )
         out.compensated |= motion is not None
-        out.frames.append(make_frame(lidar, camera, c.feature, c.blur_sigma_px, c.k_neighbours, motion))
+        out.frames.append(make_frame(lidar, camera, c.feature, c.blur_sigma_px, motion))
         out.images.append(camera.image)
         out.lidar_stamps.append(lidar.stamp_ns)
         out.n_points.append(lidar.n_points)

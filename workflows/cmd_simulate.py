@@ -1,7 +1,7 @@
 """``fleetcal simulate OUT``: write a synthetic log with exact ground truth and ``<OUT stem>.truth.json``.
 
 The vehicle drives a loop round the scene (street: a city block; corridor: a ring of 3 m corridors with
-posters; open: a yard with painted ground) with a 10 Hz spinning lidar and 10 Hz cameras fired 10-30 ms
+poster-covered walls; open: a yard with painted ground) with a 10 Hz spinning lidar and 10 Hz cameras fired 10-30 ms
 after each scan. ``/tf_static`` carries the calibration perturbed by ``--perturb-deg`` / ``--perturb-m``
 (random axis and direction, seeded); the truth file holds the exact ``T_camera_lidar``, the perturbed
 one and the lidar trajectory. The same arguments always give byte-identical files.
@@ -23,6 +23,7 @@ from workflows.simulator.write import SimulationOptions, simulate_log
 EXAMPLES = """examples:
   fleetcal simulate /tmp/street.mcap --frames 20 --seed 1
   fleetcal simulate /tmp/corridor.bag --format ros1 --scene corridor --beams 32 --cameras 2
+  fleetcal simulate /tmp/poster_wall.mcap --scene corridor --frames 50 --max-range 20
   fleetcal simulate /tmp/yard --format ros2 --scene open --compressed --fisheye
   fleetcal simulate /tmp/drift.mcap --perturb-deg 3 --perturb-m 0.2 --organized --json
 """
@@ -99,6 +100,13 @@ def add_simulation_arguments(parser: argparse.ArgumentParser, frames: int, size:
         metavar="WxH",
         help=f"camera resolution (default {size})",
     )
+    parser.add_argument(
+        "--max-range",
+        type=_float_range(1.0, 1000.0),
+        default=100.0,
+        metavar="M",
+        help="lidar max range in m (default 100; 20 keeps the corridor's ends out of sight)",
+    )
     parser.add_argument("--fisheye", action="store_true", help="equidistant fisheye cameras instead of pinhole")
     parser.add_argument(
         "--compressed",
@@ -157,6 +165,8 @@ def options_from_args(args: argparse.Namespace) -> SimulationOptions:
         perturb_deg=args.perturb_deg,
         perturb_m=args.perturb_m,
         seed=args.seed,
+        max_range_m=args.max_range,
+        deskew=not args.skewed,
         width=width,
         height=height,
     )

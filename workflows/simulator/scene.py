@@ -65,6 +65,13 @@ MATERIALS: dict[str, tuple[tuple[float, float, float], float]] = {
     "poster_red": ((0.80, 0.12, 0.10), 0.70),
     "poster_black": ((0.05, 0.05, 0.05), 0.40),
     "poster_white": ((0.93, 0.93, 0.90), 0.20),
+    "poster_retro": ((0.95, 0.95, 0.92), 0.95),
+    "poster_matte": ((0.03, 0.03, 0.04), 0.04),
+    "poster_ir_dark": ((0.85, 0.80, 0.70), 0.08),
+    "poster_ir_bright": ((0.10, 0.14, 0.10), 0.85),
+    "tile_white": ((0.80, 0.78, 0.72), 0.72),
+    "tile_black": ((0.08, 0.08, 0.09), 0.07),
+    "ceiling_lamp": ((0.98, 0.98, 0.95), 0.08),
 }
 MATERIAL_NAMES: tuple[str, ...] = tuple(MATERIALS)
 _MAT_INDEX = {name: i for i, name in enumerate(MATERIAL_NAMES)}
@@ -478,44 +485,74 @@ def _tree(b: SceneBuilder, base: NDArray[np.float64]) -> None:
 
 
 def _corridor(rng: np.random.Generator, seed: int) -> Scene:
-    """A loop of 3 m wide corridors: flat walls with posters (geometry degenerate, texture not)."""
+    """A loop of 3 m wide, 3 m high corridors with 71 m long straights (paper Fig. 3's poster wall).
+
+    Geometry is degenerate along each straight (two flat walls, floor, ceiling); texture is not: the walls
+    are covered edge to edge with posters of varied sizes (0.2-1.6 m wide, stacked in one to three rows)
+    whose lidar reflectivity and visible albedo both jump strongly at every poster edge (some inverted
+    between the two), the floor has black/white tiles in irregular patches and cross lines at random
+    spacing, and the ceiling carries lamp panels. The vehicle starts in the middle of the bottom straight
+    heading +x; the corridor's ends are 35.5 m ahead and behind, so with ``max_range_m`` <= 25 m they
+    stay out of range for the first ~70 scans at the default 1.5 m/s (nothing pins the along-wall motion
+    but texture); at full range a few near-horizontal beams still see them.
+    """
     b = SceneBuilder(rng)
-    A, B, half_w, height = 30.0, 12.0, 1.5, 3.0
+    A, B, half_w, height = 34.0, 12.0, 1.5, 3.0
     route = RouteSpec(A, B, 1.5)
     ext = 2.0
     b.quad(
         [-A - ext, -B - ext, 0.0],
         [2 * (A + ext), 0, 0],
         [0, 2 * (B + ext), 0],
-        "floor",
-        "floor_dark",
-        CHECKER,
-        0.5,
+        "tile_white",
+        "tile_black",
+        PATCHES,
+        0.4,
     )
     b.quad([-A - ext, -B - ext, height], [0, 2 * (B + ext), 0], [2 * (A + ext), 0, 0], "ceiling")
     poster_mats = [
+        ("poster_retro", "poster_matte"),
         ("poster_yellow", "poster_navy"),
         ("poster_white", "poster_black"),
-        ("poster_red", "poster_white"),
-        ("poster_navy", "poster_yellow"),
-        ("poster_black", "poster_red"),
+        ("poster_red", "poster_matte"),
+        ("poster_ir_dark", "poster_ir_bright"),
+        ("poster_navy", "poster_retro"),
+        ("poster_ir_bright", "poster_white"),
+        ("poster_ir_dark", "poster_retro"),
     ]
     up = np.array([0.0, 0.0, 1.0])
+    for p0, d, length in _ring_sides(A, B):
+        left = np.array([-d[1], d[0], 0.0])
+        # floor cross lines (white and yellow paint, random spacing and width) and ceiling lamp panels
+        s = float(rng.uniform(0.2, 1.0))
+        while s < length - 0.5:
+            w = float(rng.uniform(0.05, 0.3))
+            paint = "paint_white" if rng.random() < 0.6 else "paint_yellow"
+            b.quad(p0 + d * s - left * half_w + up * 0.004, d * w, left * 2 * half_w, paint)
+            s += w + float(rng.uniform(0.6, 3.5))
+        s = float(rng.uniform(0.5, 2.0))
+        while s < length - 1.5:
+            w = float(rng.uniform(0.6, 1.2))
+            b.quad(p0 + d * (s + w) - left * 0.3 + up * (height - 0.01), -d * w, left * 0.6, "ceiling_lamp")
+            s += w + float(rng.uniform(1.5, 4.0))
     for sign in (1.0, -1.0):
         hx, hy = A - sign * half_w, B - sign * half_w
         for p0, d, length in _ring_sides(hx, hy):
             inward_to_corridor = np.array([-d[1], d[0], 0.0]) * (-sign)
             b.quad(p0 + np.array([0, 0, 0.0]), d * length, up * height, "wall")
-            s = float(rng.uniform(0.5, 2.0))
-            while s < length - 1.5:
-                w = float(rng.uniform(0.6, 1.3))
-                h = float(rng.uniform(0.7, 1.2))
-                z0 = float(rng.uniform(0.8, 1.6))
-                ma, mb = poster_mats[int(rng.integers(0, len(poster_mats)))]
-                kind = [CHECKER, STRIPES, PATCHES, SOLID][int(rng.integers(0, 4))]
-                c = p0 + d * s + up * z0 + inward_to_corridor * 0.01
-                b.quad(c, d * w, up * h, ma, mb, kind, float(rng.uniform(0.08, 0.3)))
-                s += w + float(rng.uniform(0.8, 3.0))
+            s = float(rng.uniform(0.0, 0.2))
+            while s < length - 0.2:
+                w = float(min(rng.uniform(0.2, 1.6), length - s))
+                rows = int(rng.integers(1, 4))
+                edges = np.concatenate([[0.05], np.sort(rng.uniform(0.4, 2.6, size=rows - 1)), [2.95]])
+                for z0, z1 in zip(edges[:-1], edges[1:], strict=True):
+                    if z1 - z0 < 0.15:
+                        continue
+                    ma, mb = poster_mats[int(rng.integers(0, len(poster_mats)))]
+                    kind = [CHECKER, STRIPES, PATCHES, SOLID, STRIPES][int(rng.integers(0, 5))]
+                    c = p0 + d * s + up * float(z0 + 0.02) + inward_to_corridor * 0.01
+                    b.quad(c, d * w, up * float(z1 - z0 - 0.04), ma, mb, kind, float(rng.uniform(0.05, 0.4)))
+                s += w + float(rng.uniform(0.02, 0.25))
     return b.build("corridor", seed, route, lidar_height_m=1.0)
 
 
