@@ -195,6 +195,8 @@ def test_cli_simulate_json_and_truth_schema(tmp_path: Path, capsys: pytest.Captu
             "0.2",
             "--seed",
             "2",
+            "--max-range",
+            "4",
             "--json",
             "-q",
         ]
@@ -216,6 +218,13 @@ def test_cli_simulate_json_and_truth_schema(tmp_path: Path, capsys: pytest.Captu
     np.testing.assert_allclose(truth["trajectory"][0]["T_map_lidar"], np.eye(4), atol=1e-12)
     # 1.5 m/s in the corridor: 0.3 m after 0.2 s
     assert np.linalg.norm(np.asarray(truth["trajectory"][2]["T_map_lidar"])[:3, 3]) == pytest.approx(0.3, abs=1e-6)
+    # --max-range 4: no return beyond 4 m (the 3 m corridor is otherwise seen to 20+ m along its axis)
+    assert truth["lidar"]["max_range_m"] == 4.0
+    with open_log(out) as reader:
+        ranges = np.concatenate(
+            [np.linalg.norm(f.points_xyz, axis=1) for f in iter_lidar_frames(reader, "/lidar/points")]
+        )
+    assert ranges.size > 3 * 5000 and 3.5 < ranges.max() <= 4.0
 
 
 def test_truth_schema_matches_shared_data(shared_data: Path, tmp_path: Path) -> None:
@@ -242,6 +251,7 @@ def test_truth_schema_matches_shared_data(shared_data: Path, tmp_path: Path) -> 
         (["--format", "zip"], "--format"),
         (["--speed", "-1"], "--speed"),
         (["--image-size", "big"], "--image-size"),
+        (["--max-range", "0"], "--max-range"),
     ],
 )
 def test_cli_nonsense_arguments_get_one_line_error(

@@ -11,6 +11,7 @@ World frame: x east, y north, z up, metres, ground at z = 0.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -528,12 +529,12 @@ def _corridor(rng: np.random.Generator, seed: int) -> Scene:
         while s < length - 0.5:
             w = float(rng.uniform(0.05, 0.3))
             paint = "paint_white" if rng.random() < 0.6 else "paint_yellow"
-            b.quad(p0 + d * s - left * half_w + up * 0.004, d * w, left * 2 * half_w, paint)
+            b.quad(p0 + d * s - left * half_w + up * 0.002, d * w, left * 2 * half_w, paint)
             s += w + float(rng.uniform(0.6, 3.5))
         s = float(rng.uniform(0.5, 2.0))
         while s < length - 1.5:
             w = float(rng.uniform(0.6, 1.2))
-            b.quad(p0 + d * (s + w) - left * 0.3 + up * (height - 0.01), -d * w, left * 0.6, "ceiling_lamp")
+            b.quad(p0 + d * (s + w) - left * 0.3 + up * (height - 0.002), -d * w, left * 0.6, "ceiling_lamp")
             s += w + float(rng.uniform(1.5, 4.0))
     for sign in (1.0, -1.0):
         hx, hy = A - sign * half_w, B - sign * half_w
@@ -545,12 +546,12 @@ def _corridor(rng: np.random.Generator, seed: int) -> Scene:
                 w = float(min(rng.uniform(0.2, 1.6), length - s))
                 rows = int(rng.integers(1, 4))
                 edges = np.concatenate([[0.05], np.sort(rng.uniform(0.4, 2.6, size=rows - 1)), [2.95]])
-                for z0, z1 in zip(edges[:-1], edges[1:], strict=True):
+                for z0, z1 in itertools.pairwise(edges):
                     if z1 - z0 < 0.15:
                         continue
                     ma, mb = poster_mats[int(rng.integers(0, len(poster_mats)))]
                     kind = [CHECKER, STRIPES, PATCHES, SOLID, STRIPES][int(rng.integers(0, 5))]
-                    c = p0 + d * s + up * float(z0 + 0.02) + inward_to_corridor * 0.01
+                    c = p0 + d * s + up * float(z0 + 0.02) + inward_to_corridor * 0.002
                     b.quad(c, d * w, up * float(z1 - z0 - 0.04), ma, mb, kind, float(rng.uniform(0.05, 0.4)))
                 s += w + float(rng.uniform(0.02, 0.25))
     return b.build("corridor", seed, route, lidar_height_m=1.0)
