@@ -1,0 +1,130 @@
+"""GOM calibration on simulated logs (``workflows.simulator``) with exact ground truth.
+
+The logs are written by the simulator (64 beams, 512 columns, 640x360 pinhole images, camera fired
+10-30 ms after each scan, 8 m/s on the street), their frames are collected by the calibrate
+workflow (pairing, ego-motion from ``/tf``, lidar feature, image gradients) and ``calibrate`` starts
+from the log's ``/tf_static``, which the simulator perturbed by 5 deg / 0.5 m on a random axis.
+
+Measured (``.venv/bin/python`` loop over these helpers, 10 frames, default ``CalibrationConfig``):
+street, 1280x720 x 1024 columns: range 1.43 deg / 23.9 cm (``fleetcal calibrate --json``);
+street, 640x360 x 512 columns: range 3.93 deg / 30.4 cm, intensity 0.249 deg / 0.96 cm.
+In the simulator the lidar intensity is the reflectivity that also paints the image, so the
+intensity feature is the right one there, while the range feature's optimum is biased (a probe at
+the truth: -0.5 deg about the optical axis scores 0.734 vs 0.677 at the truth). The issue's target
+of 0.1 deg / 2 cm on the street is reached in translation only.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from pipeline.config import Config
+from pipeline.transforms import rotation_error_deg, translation_error_m
+from readers.frames import load_tf_tree
+from readers.open import open_log
+from stages.calibration import CalibrationConfig, CalibrationFrame, calibrate
+from workflows.calibrate import collect_frames, initial_guess
+from workflows.simulator.truth import load_truth, truth_path_for
+from workflows.simulator.write import SimulationOptions, simulate_log
+
+SIM = {"beams": 64, "columns": 512, "width": 640, "height": 360, "perturb_deg": 5.0, "perturb_m": 0.5,
+       "seed": 1}
+
+
+def simulated_frames(out: Path, scene: str, feature: str, frames: int) -> tuple[
+        list[CalibrationFrame], NDArray[np.float64], NDArray[np.float64]]:
+    """Frames (as the calibrate workflow collects them), the log's tf guess and the true extrinsic."""
+    log = out / f"{scene}.mcap"
+    if not log.exists():
+        simulate_log(log, SimulationOptions(frames=frames, scene=scene, **SIM))  # type: ignore[arg-type]
+    truth = load_truth(truth_path_for(log))
+    config = Config()
+    config.calibration.feature = feature  # type: ignore[assignment]
+    config.calibration.frames = frames
+    reader = open_log(log)
+    try:
+        tree = load_tf_tree(reader)
+        pair = truth["pairs"][0]
+        col = collect_frames(reader, truth["lidar_topic"], pair["camera_topic"], config, tree)
+        T_init = initial_guess(tree, col.lidar_frame, col.camera_frame, None)
+    finally:
+        close = getattr(reader, "close", None)
+        if close is not None:
+            close()
+    return col.frames, T_init, np.asarray(pair["T_camera_lidar"], dtype=np.float64)
+
+
+@pytest.fixture(scope="module")
+def sim_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("sim")
+
+
+def test_street_intensity_recovers_extrinsic_from_5deg_50cm(sim_dir: Path) -> None:
+    frames, T_init, T_true = simulated_frames(sim_dir, "street", "intensity", 10)
+    assert len(frames) == 10
+    assert rotation_error_deg(T_init, T_true) == pytest.approx(5.0, abs=1e-6)
+    assert translation_error_m(T_init, T_true) == pytest.approx(0.5, abs=1e-6)
+    assert any(f.T_lidar_motion is not None for f in frames)  # ego-motion from /tf is applied
+    result = calibrate(frames, T_init, CalibrationConfig())
+    rot = rotation_error_deg(result.T_camera_lidar, T_true)
+    trans = translation_error_m(result.T_camera_lidar, T_true)
+    assert rot <= 0.35, f"rotation error {rot:.3f} deg"
+    assert trans <= 0.02, f"translation error {trans:.3f} m"
+    assert result.verdict == "recalibrated"
+    assert result.score > result.initial_score + 0.1
+
+
+# Open yard (painted ground, few depth edges), 640x360 x 512 columns, 10 frames, from 5 deg / 0.5 m,
+# default settings: intensity 0.112 deg / 2.1 cm; range 2.25 deg / 76.6 cm; normals 4.42 deg / 79.5 cm.
+# Range and normals have almost no gradient on flat painted ground, so they fail there; the issue
+# expected normals to work where range fails, which it does not (yet).
+def test_open_scene_intensity_recovers_extrinsic(sim_dir: Path) -> None:
+    frames, T_init, T_true = simulated_frames(sim_dir, "open", "intensity", 10)
+    result = calibrate(frames, T_init, CalibrationConfig())
+    rot = rotation_error_deg(result.T_camera_lidar, T_true)
+    trans = translation_error_m(result.T_camera_lidar, T_true)
+    assert rot <= 0.2, f"rotation error {rot:.3f} deg"
+    assert trans <= 0.04, f"translation error {trans:.3f} m"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("feature", [
+    pytest.param("range", marks=pytest.mark.xfail(reason="2.25 deg / 77 cm: flat painted ground has no range "
+                                                         "edges", strict=False)),
+    pytest.param("normals", marks=pytest.mark.xfail(reason="4.42 deg / 79 cm: normals are uniform on flat "
+                                                           "ground", strict=False)),
+])
+def test_open_scene_geometric_features(sim_dir: Path, feature: str) -> None:
+    frames, T_init, T_true = simulated_frames(sim_dir, "open", feature, 10)
+    result = calibrate(frames, T_init, CalibrationConfig())
+    assert rotation_error_deg(result.T_camera_lidar, T_true) <= 0.5
+    assert translation_error_m(result.T_camera_lidar, T_true) <= 0.1
+
+
+def test_coarse_gradients_equal_gradients_of_the_more_blurred_image() -> None:
+    """``blurred_frames`` (coarse stage of ``coarse_to_fine``) blurs gx / gy; that must equal the
+    Sobel of the image blurred by ``factor`` times the default sigma (blur and Sobel commute)."""
+    import cv2
+
+    from pipeline.camera_model import CameraModel
+    from stages.calibration.calibrator import blurred_frames, default_blur_sigma_px
+    from stages.image_gradients import compute_image_gradients
+
+    rng = np.random.default_rng(3)
+    image = cv2.resize(rng.integers(0, 256, (45, 80), dtype=np.uint8), (640, 360),
+                       interpolation=cv2.INTER_NEAREST)
+    camera = CameraModel(640, 360, np.array([[500.0, 0, 320], [0, 500.0, 180], [0, 0, 1]]), np.zeros(5))
+    sigma = default_blur_sigma_px(640)
+    frame = CalibrationFrame(points_xyz=np.zeros((1, 3)), feature=np.zeros(1), camera=camera,
+                             gradients=compute_image_gradients(image, blur_sigma_px=sigma))
+    coarse = blurred_frames([frame], 4.0)[0].gradients
+    direct = compute_image_gradients(image, blur_sigma_px=4.0 * sigma)
+    inner = (slice(40, -40), slice(40, -40))
+    scale = float(np.abs(direct.gx[inner]).max())
+    assert np.abs(coarse.gx[inner] - direct.gx[inner]).max() < 0.005 * scale
+    assert np.abs(coarse.gy[inner] - direct.gy[inner]).max() < 0.005 * scale
+    assert np.abs(coarse.gx[inner]).max() < 0.5 * float(np.abs(frame.gradients.gx[inner]).max())
