@@ -170,42 +170,73 @@ def normal_ray_angles(
 
 
 @njit(**NJIT_FLAGS)
+def _angular_lower_bound_m(range_m: float, angle_rad: float) -> float:
+    """Least distance, metres, from a point at ``range_m`` to any point seen ``angle_rad`` away."""
+    if angle_rad >= 0.5 * math.pi:
+        return range_m
+    return range_m * math.sin(angle_rad)
+
+
+@njit(**NJIT_FLAGS)
+def _azimuth_gap_limit(range_m: float, worst_d2: float, cos_min: float) -> float:
+    """Azimuth gap, radians, beyond which every point is at least ``sqrt(worst_d2)`` away.
+
+    Inverse of: angle >= 2 asin(cos_min sin(gap / 2)) and distance >= range sin(angle).
+    """
+    if not (worst_d2 < range_m * range_m) or cos_min <= 0.0:
+        return np.inf
+    angle = math.asin(math.sqrt(worst_d2) / range_m)
+    s = math.sin(0.5 * angle) / cos_min
+    if s >= 1.0:
+        return np.inf
+    return 2.0 * math.asin(s)
+
+
+@njit(**NJIT_FLAGS)
 def grid_neighbours(
     points_xyz: np.ndarray,
     rows: np.ndarray,
     cols: np.ndarray,
+    elevation: np.ndarray,
+    azimuth: np.ndarray,
     n_rows: int,
     n_cols: int,
     k: int,
-    half_rows: int,
-    half_cols: int,
-    max_range_jump: float,
+    max_half_rows: int,
+    max_half_cols: int,
+    angular: bool,
     sensor_xyz: np.ndarray,
     neighbours_out: np.ndarray,
+    exact_out: np.ndarray,
 ) -> None:
-    """k nearest neighbours of each point among the points of a small range-image window.
+    """k nearest neighbours of each point searched in a spherical range image, proven exact.
 
-    Points are binned into cells ``(row, col)`` (row: laser ring or elevation bin, col: azimuth bin,
-    wrapping around); each point's candidates are the points of the cells within ``half_rows`` rows
-    and ``half_cols`` columns of its own cell whose range (distance to the sensor) differs from the
-    point's by at most ``max_range_jump`` times the point's range. The k candidates nearest in 3D
-    (Euclidean) are written nearest first.
+    Points are binned into cells ``(row, col)`` (row: laser ring or elevation bin, col: azimuth bin
+    of width 2 pi / n_cols, wrapping around). Each point searches its own row first, then rows
+    further out, and in each row the columns outward from its own; with ``angular`` a row or a
+    column run is skipped once the least possible distance to anything in it (the point's range
+    times the sine of the least angle to the cell, from the rows' elevation extents and the
+    column's azimuth gap) reaches the current k-th distance. The search stops at ``max_half_rows``
+    and ``max_half_cols``; ``exact_out[i]`` is True when the k found are then provably the k
+    nearest of the whole cloud (everything outside the window is farther), else False (fewer than k
+    found, or the window cap was hit: the caller recomputes those points). Without ``angular``
+    (organised grids, no angles) the full window is searched and ``exact_out`` is all False.
 
     Args:
         points_xyz: (N, 3) float64 finite points, metres.
-        rows: (N,) int64 in [0, n_rows).
-        cols: (N,) int64 in [0, n_cols).
-        n_rows, n_cols: grid size.
+        rows: (N,) int64 in [0, n_rows); cols: (N,) int64 in [0, n_cols).
+        elevation: (N,) float64 radians seen from the sensor; azimuth: (N,) float64 radians in
+            [-pi, pi); both used only with ``angular``; cols must be floor((azimuth + pi) / width).
         k: neighbours per point.
-        half_rows, half_cols: window half sizes in cells.
-        max_range_jump: relative range gate (e.g. 0.3); ``inf`` disables it.
+        max_half_rows, max_half_cols: window cap, cells each side.
+        angular: rows/cols are elevation/azimuth bins (enables pruning and the exactness proof).
         sensor_xyz: (3,) float64 sensor origin.
-        neighbours_out: (N, k) int64 output, indices nearest first, ``-1`` where fewer than k
-            candidates exist (the point itself is never listed).
+        neighbours_out: (N, k) int64 output, nearest first, ``-1`` where fewer than k were found.
+        exact_out: (N,) bool output.
     """
     n = points_xyz.shape[0]
     n_cells = n_rows * n_cols
-    # counting sort by cell: every row's azimuth window is then one contiguous run (two at the wrap)
+    # counting sort by cell: each column of a row is one contiguous run
     cell_start = np.zeros(n_cells + 1, dtype=np.int64)
     for i in range(n):
         cell_start[rows[i] * n_cols + cols[i] + 1] += 1
@@ -217,75 +248,142 @@ def grid_neighbours(
         c = rows[i] * n_cols + cols[i]
         order[fill[c]] = i
         fill[c] += 1
-    xyz = np.empty((n, 3))
-    ranges = np.empty(n)
+    xs = np.empty(n)
+    ys = np.empty(n)
+    zs = np.empty(n)
     for a in range(n):
         i = order[a]
-        xyz[a, 0] = points_xyz[i, 0]
-        xyz[a, 1] = points_xyz[i, 1]
-        xyz[a, 2] = points_xyz[i, 2]
-        dx = points_xyz[i, 0] - sensor_xyz[0]
-        dy = points_xyz[i, 1] - sensor_xyz[1]
-        dz = points_xyz[i, 2] - sensor_xyz[2]
-        ranges[a] = math.sqrt(dx * dx + dy * dy + dz * dz)
+        xs[a] = points_xyz[i, 0]
+        ys[a] = points_xyz[i, 1]
+        zs[a] = points_xyz[i, 2]
+    # elevation extent and smallest cosine of each row; extents of all rows beyond each row
+    row_lo = np.full(n_rows, np.inf)
+    row_hi = np.full(n_rows, -np.inf)
+    for i in range(n):
+        r = rows[i]
+        row_lo[r] = min(row_lo[r], elevation[i])
+        row_hi[r] = max(row_hi[r], elevation[i])
+    above_lo = np.full(n_rows + 1, np.inf)  # min elevation over rows > r  (index r + 1)
+    for r in range(n_rows - 1, -1, -1):
+        above_lo[r] = min(above_lo[r + 1], row_lo[r])
+    below_hi = np.full(n_rows + 1, -np.inf)  # max elevation over rows < r  (index r)
+    for r in range(n_rows):
+        below_hi[r + 1] = max(below_hi[r], row_hi[r])
+    max_abs_el = 0.0
+    for r in range(n_rows):
+        if row_lo[r] <= row_hi[r]:
+            max_abs_el = max(max_abs_el, abs(row_lo[r]), abs(row_hi[r]))
+    cos_min = math.cos(min(max_abs_el, 0.5 * math.pi))
+    width = 2.0 * math.pi / n_cols
     best_d = np.empty(k)
     best_a = np.empty(k, dtype=np.int64)
-    seg_lo = np.empty(2, dtype=np.int64)
-    seg_hi = np.empty(2, dtype=np.int64)
+    whole_row = 2 * max_half_cols + 1 >= n_cols
     for a in range(n):
         i = order[a]
         for j in range(k):
             best_d[j] = np.inf
             best_a[j] = -1
-        px = xyz[a, 0]
-        py = xyz[a, 1]
-        pz = xyz[a, 2]
-        ra = ranges[a]
-        gate = max_range_jump * ra
-        col = cols[i]
-        r_lo = max(0, rows[i] - half_rows)
-        r_hi = min(n_rows - 1, rows[i] + half_rows)
-        for r in range(r_lo, r_hi + 1):
+        worst = np.inf
+        worst_at = 0
+        px = xs[a]
+        py = ys[a]
+        pz = zs[a]
+        dxs = px - sensor_xyz[0]
+        dys = py - sensor_xyz[1]
+        dzs = pz - sensor_xyz[2]
+        rng = math.sqrt(dxs * dxs + dys * dys + dzs * dzs)
+        el = elevation[i]
+        az_in_cell = azimuth[i] + math.pi - cols[i] * width  # position inside its column, [0, width)
+        row0 = rows[i]
+        col0 = cols[i]
+        proven = angular
+        for w in range(2 * max_half_rows + 1):
+            off = (w + 1) // 2
+            r = row0 + (off if w % 2 == 1 else -off)
+            if r < 0 or r >= n_rows or row_lo[r] > row_hi[r]:
+                continue
+            if angular and r != row0:
+                gap_el = max(0.0, row_lo[r] - el, el - row_hi[r])
+                lb = _angular_lower_bound_m(rng, gap_el)
+                if lb * lb >= worst:
+                    continue
             base = r * n_cols
-            n_seg = 1
-            if 2 * half_cols + 1 >= n_cols:
-                seg_lo[0] = cell_start[base]
-                seg_hi[0] = cell_start[base + n_cols]
-            else:
-                c0 = col - half_cols
-                c1 = col + half_cols
-                if c0 < 0:
-                    seg_lo[0] = cell_start[base]
-                    seg_hi[0] = cell_start[base + c1 + 1]
-                    seg_lo[1] = cell_start[base + n_cols + c0]
-                    seg_hi[1] = cell_start[base + n_cols]
-                    n_seg = 2
-                elif c1 >= n_cols:
-                    seg_lo[0] = cell_start[base + c0]
-                    seg_hi[0] = cell_start[base + n_cols]
-                    seg_lo[1] = cell_start[base]
-                    seg_hi[1] = cell_start[base + c1 - n_cols + 1]
-                    n_seg = 2
-                else:
-                    seg_lo[0] = cell_start[base + c0]
-                    seg_hi[0] = cell_start[base + c1 + 1]
-            for g in range(n_seg):
-                for b in range(seg_lo[g], seg_hi[g]):
-                    if b == a or abs(ranges[b] - ra) > gate:
+            n_steps = n_cols if whole_row else 2 * max_half_cols + 1
+            go_up = True
+            go_down = True
+            gap_limit = _azimuth_gap_limit(rng, worst, cos_min)
+            for step in range(n_steps):
+                d = (step + 1) // 2
+                up = step % 2 == 1
+                if step > 0 and ((up and not go_up) or (not up and not go_down)):
+                    continue
+                if whole_row and step > 0 and 2 * d > n_cols:
+                    continue
+                if whole_row and step > 0 and 2 * d == n_cols and not up:
+                    continue  # the opposite column, visited once
+                if angular and d > 0:
+                    if (step & 7) == 0:
+                        gap_limit = _azimuth_gap_limit(rng, worst, cos_min)
+                    gap_az = (d - 1) * width + (width - az_in_cell if up else az_in_cell)
+                    if gap_az >= gap_limit:
+                        if up:
+                            go_up = False
+                        else:
+                            go_down = False
                         continue
-                    dx = xyz[b, 0] - px
-                    dy = xyz[b, 1] - py
-                    dz = xyz[b, 2] - pz
+                c = (col0 + d) % n_cols if up else (col0 - d) % n_cols
+                cell = base + c
+                for b in range(cell_start[cell], cell_start[cell + 1]):
+                    dx = xs[b] - px
+                    dy = ys[b] - py
+                    dz = zs[b] - pz
                     d2 = dx * dx + dy * dy + dz * dz
-                    if d2 >= best_d[k - 1]:
+                    if d2 >= worst or b == a:
                         continue
-                    pos = k - 1
-                    while pos > 0 and best_d[pos - 1] > d2:
-                        best_d[pos] = best_d[pos - 1]
-                        best_a[pos] = best_a[pos - 1]
-                        pos -= 1
-                    best_d[pos] = d2
-                    best_a[pos] = b
+                    best_d[worst_at] = d2
+                    best_a[worst_at] = b
+                    worst = best_d[0]
+                    worst_at = 0
+                    for j in range(1, k):
+                        if best_d[j] > worst:
+                            worst = best_d[j]
+                            worst_at = j
+            if angular and not whole_row:
+                # the columns past the cap in each still-open direction must be out of reach
+                gap_az = max_half_cols * width + min(width - az_in_cell, az_in_cell)
+                ang = 2.0 * math.asin(min(1.0, cos_min * math.sin(0.5 * min(gap_az, math.pi))))
+                lb = _angular_lower_bound_m(rng, ang)
+                if (go_up or go_down) and lb * lb < worst:
+                    proven = False
+        if proven:
+            # rows past the cap, on both sides, must be out of reach
+            hi_row = row0 + max_half_rows
+            lo_row = row0 - max_half_rows
+            if hi_row + 1 < n_rows:
+                gap_el = max(0.0, above_lo[hi_row + 1] - el)
+                lb = _angular_lower_bound_m(rng, gap_el)
+                if lb * lb < worst:
+                    proven = False
+            if lo_row - 1 >= 0:
+                gap_el = max(0.0, el - below_hi[lo_row])
+                lb = _angular_lower_bound_m(rng, gap_el)
+                if lb * lb < worst:
+                    proven = False
+        exact_out[i] = proven and best_a[k - 1] >= 0 and worst < np.inf
+        # insertion sort of the k found, nearest first (ties: lower original index first)
+        for j in range(1, k):
+            dj = best_d[j]
+            bj = best_a[j]
+            pos = j
+            while pos > 0 and (
+                best_d[pos - 1] > dj
+                or (best_d[pos - 1] == dj and bj >= 0 and (best_a[pos - 1] < 0 or order[best_a[pos - 1]] > order[bj]))
+            ):
+                best_d[pos] = best_d[pos - 1]
+                best_a[pos] = best_a[pos - 1]
+                pos -= 1
+            best_d[pos] = dj
+            best_a[pos] = bj
         for j in range(k):
             neighbours_out[i, j] = order[best_a[j]] if best_a[j] >= 0 else -1
 
@@ -296,4 +394,7 @@ def warm_up() -> None:
     nbr = np.array([[0, 1, 2], [1, 0, 2], [2, 0, 1]], dtype=np.int64)
     normal_ray_angles(pts, nbr, 2, np.zeros(3), np.empty((3, 3)), np.empty(3))
     zeros = np.zeros(3, dtype=np.int64)
-    grid_neighbours(pts, zeros, zeros, 1, 1, 2, 1, 1, np.inf, np.zeros(3), np.empty((3, 2), dtype=np.int64))
+    angles = np.zeros(3)
+    for angular in (True, False):
+        grid_neighbours(pts, zeros, zeros, angles, angles - np.pi, 1, 1, 2, 1, 1, angular, np.zeros(3),
+                        np.empty((3, 2), dtype=np.int64), np.empty(3, dtype=np.bool_))  # fmt: skip

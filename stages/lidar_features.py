@@ -42,25 +42,31 @@ NeighbourSearch = Literal["auto", "kdtree", "grid"]
 
 @dataclass(frozen=True)
 class GridSearchParams:
-    """Range-image window of the grid neighbour search (``search="grid"``).
+    """Window cap of the range-image neighbour search (``search="grid"``).
 
     Attributes:
-        half_rows: rings (or elevation bins) searched on each side of the point's own.
-        half_cols: azimuth bins searched on each side; the azimuth bin is about one point wide
-            (points per row / bins per row ~ 1), so this is about the points seen along the ring.
-        max_range_jump: candidates whose range differs from the point's by more than this fraction
-            of the point's range are rejected (depth edges).
-        elevation_bin_deg: without a ring channel or organised grid the cells are square
-            ``elevation_bin_deg`` x ``elevation_bin_deg`` bins of elevation and azimuth, and the
-            window is ``elevation_half_rows`` x ``elevation_half_cols`` bins each side.
+        max_half_rows: rows (rings or elevation bins) searched at most on each side of the point's.
+        max_half_cols: azimuth bins searched at most on each side; within the cap the search stops
+            as soon as nothing farther out can be nearer than the current k-th neighbour.
+        elevation_bin_deg: row height (and azimuth bin width) when the scan has no ring channel.
     """
 
-    half_rows: int = 1
-    half_cols: int = 5
-    max_range_jump: float = 0.3
-    elevation_bin_deg: float = 0.2
-    elevation_half_rows: int = 3
-    elevation_half_cols: int = 4
+    max_half_rows: int = 6
+    max_half_cols: int = 24
+    elevation_bin_deg: float = 0.4
+
+
+@dataclass
+class GridNeighbours:
+    """Result of ``grid_neighbours``.
+
+    Attributes:
+        neighbours: (N, k) int64 indices, nearest first, -1 where fewer than k were found.
+        exact: (N,) bool, True where the k are proven to be the k nearest of the whole cloud.
+    """
+
+    neighbours: NDArray[np.int64]
+    exact: NDArray[np.bool_]
 
 
 def grid_neighbours(
@@ -69,31 +75,26 @@ def grid_neighbours(
     sensor_xyz: ArrayLike = (0.0, 0.0, 0.0),
     *,
     rings: ArrayLike | None = None,
-    organized: tuple[tuple[int, int], ArrayLike] | None = None,
     params: GridSearchParams | None = None,
-) -> NDArray[np.int64]:
-    """k nearest neighbours (indices, nearest first, -1 padded) from a spherical range-image window.
+) -> GridNeighbours:
+    """k nearest neighbours from a spherical range image, with a proof of exactness per point.
 
-    Rows are the ``rings`` channel values, else the organised grid's rows (``organized`` =
-    ``((height, width), organized_index)``), else elevation bins of ``elevation_bin_deg`` seen from
-    ``sensor_xyz``; columns are azimuth bins (the organised grid's columns when organised). The
-    candidates of a point are those of the cells within the window, range-gated; the k nearest in
-    3D are returned. Equal to the exact k-NN wherever those lie in the window (on a spinning
-    lidar: almost everywhere except sparse far ground and depth edges).
+    Rows are the laser rings (``rings``, ordered by their mean elevation), else elevation bins of
+    ``elevation_bin_deg`` seen from ``sensor_xyz``; columns are azimuth bins (one point wide per
+    ring, or ``elevation_bin_deg`` wide). The search runs outward from the point's cell and skips
+    every row or column run whose least possible distance (range x sine of the least angle to it)
+    is already beyond the k-th neighbour, so the k found are the exact Euclidean k nearest wherever
+    the search ends inside the window cap (``exact``); 87-99% of the real spinning-lidar scans tried.
 
     Args:
         points_xyz: (N, 3) finite points, metres.
         k: neighbours per point (>= 1).
         sensor_xyz: sensor origin, same frame.
         rings: optional (N,) integer laser ring per point.
-        organized: optional ((height, width), (N,) flat index into the organised grid).
-        params: window settings.
-
-    Returns:
-        (N, k) int64 indices into ``points_xyz``; -1 where fewer than k candidates were found.
+        params: window cap and bin size.
 
     Raises:
-        InputError: bad shapes, non-finite points, k < 1, rings out of range.
+        InputError: bad shapes, non-finite points, k < 1.
     """
     pts = _check_points(points_xyz)
     if not np.isfinite(pts).all():
@@ -102,8 +103,7 @@ def grid_neighbours(
         raise InputError(f"k must be an integer >= 1, got {k!r}")
     n = pts.shape[0]
     ring_arr = None if rings is None else _check_channel(rings, n, "rings")
-    org = None if organized is None else (organized[0], _check_channel(organized[1], n, "organized_index"))
-    return _grid_neighbours(pts, int(k), _check_sensor(sensor_xyz), ring_arr, org, params or GridSearchParams())
+    return _grid_neighbours(pts, int(k), _check_sensor(sensor_xyz), ring_arr, params or GridSearchParams())
 
 
 def _grid_neighbours(
@@ -111,50 +111,39 @@ def _grid_neighbours(
     k: int,
     sensor: NDArray[np.float64],
     rings: NDArray[np.int64] | None,
-    organized: tuple[tuple[int, int], NDArray[np.int64]] | None,
     params: GridSearchParams,
-) -> NDArray[np.int64]:
+) -> GridNeighbours:
     n = pts.shape[0]
     out = np.full((n, k), -1, dtype=np.int64)
+    exact = np.zeros(n, dtype=bool)
     if n < 2:
-        return out
+        return GridNeighbours(out, exact)
+    if not params.elevation_bin_deg > 0 or params.max_half_rows < 0 or params.max_half_cols < 0:
+        raise InputError(f"bad grid search parameters {params}")
     rel = pts - sensor
-    if organized is not None and rings is None:
-        (height, width), index = organized
-        if index.min() < 0 or index.max() >= height * width:
-            raise InputError(f"organized_index outside the {height}x{width} grid")
-        rows, cols = index // width, index % width
-        n_rows, n_cols = int(height), int(width)
-        half_rows, half_cols = params.half_rows, params.half_cols
+    elevation = np.arctan2(rel[:, 2], np.hypot(rel[:, 0], rel[:, 1]))
+    azimuth = np.arctan2(rel[:, 1], rel[:, 0])
+    if rings is not None:
+        # rows = rings in order of mean elevation (ring ids need not follow elevation)
+        ring_ids, ring_of_point = np.unique(rings, return_inverse=True)
+        mean_el = np.bincount(ring_of_point, weights=elevation) / np.bincount(ring_of_point)
+        rank = np.empty(ring_ids.shape[0], dtype=np.int64)
+        rank[np.argsort(mean_el, kind="stable")] = np.arange(ring_ids.shape[0])
+        rows = rank[ring_of_point.ravel()]
+        n_rows = int(ring_ids.shape[0])
+        n_cols = max(1, round(n / n_rows))
     else:
-        if rings is not None:
-            ring_min = int(rings.min())
-            rows = rings - ring_min
-            n_rows = int(rows.max()) + 1
-            if n_rows > 65536:
-                raise InputError(f"ring channel spans {n_rows} values; not laser rings")
-        else:
-            if not params.elevation_bin_deg > 0:
-                raise InputError(f"elevation_bin_deg must be > 0, got {params.elevation_bin_deg}")
-            elevation = np.arctan2(rel[:, 2], np.hypot(rel[:, 0], rel[:, 1]))
-            rows = np.floor((elevation - elevation.min()) / np.radians(params.elevation_bin_deg)).astype(np.int64)
-            n_rows = int(rows.max()) + 1
-        half_rows, half_cols = params.half_rows, params.half_cols
-        if rings is not None:
-            occupied = int(np.count_nonzero(np.bincount(rows, minlength=n_rows)))
-            n_cols = max(1, round(n / occupied))
-        else:
-            n_cols = max(1, round(360.0 / params.elevation_bin_deg))
-            half_rows, half_cols = params.elevation_half_rows, params.elevation_half_cols
-        azimuth = np.arctan2(rel[:, 1], rel[:, 0])
-        cols = np.floor((azimuth + np.pi) * (n_cols / (2.0 * np.pi))).astype(np.int64)
-        np.clip(cols, 0, n_cols - 1, out=cols)
+        bin_rad = np.radians(params.elevation_bin_deg)
+        rows = np.floor((elevation - elevation.min()) / bin_rad).astype(np.int64)
+        n_rows = int(rows.max()) + 1
+        n_cols = max(1, round(360.0 / params.elevation_bin_deg))
+    cols = np.floor((azimuth + np.pi) * (n_cols / (2.0 * np.pi))).astype(np.int64)
+    np.clip(cols, 0, n_cols - 1, out=cols)
     lidar_feature_kernels.grid_neighbours(
-        pts, np.ascontiguousarray(rows, dtype=np.int64), np.ascontiguousarray(cols, dtype=np.int64),
-        n_rows, n_cols, k, int(half_rows), int(half_cols), float(params.max_range_jump),
-        sensor, out,
+        pts, np.ascontiguousarray(rows), cols, elevation, azimuth, n_rows, n_cols, k,
+        int(params.max_half_rows), int(params.max_half_cols), True, sensor, out, exact,
     )  # fmt: skip
-    return out
+    return GridNeighbours(out, exact)
 
 
 def _check_channel(values: ArrayLike, n: int, name: str) -> NDArray[np.int64]:
@@ -194,18 +183,19 @@ def normal_ray_angles(
     knn_workers: int = -1,
     *,
     rings: ArrayLike | None = None,
-    organized: tuple[tuple[int, int], ArrayLike] | None = None,
     search: NeighbourSearch = "auto",
     grid: GridSearchParams | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """PCA normals of the k nearest neighbours and their angle to the sensor ray.
 
-    Neighbours come from ``scipy.spatial.cKDTree`` over the finite points (``search="kdtree"``;
-    query threads ``knn_workers``, -1 = all cores) or from a range-image window (``search="grid"``,
-    see ``grid_neighbours``; the k nearest in 3D among the points of a few rings/azimuth bins around
-    the point, about 5x faster). ``"auto"`` takes the grid when the scan has a ring channel or is
-    organised, else the kd-tree. The covariance is centred at the point (GOM eq. 4) and its smallest
-    eigenvector is the normal; where both searches find the same neighbours the outputs are equal.
+    Neighbours are the exact Euclidean k nearest among the finite points, from
+    ``scipy.spatial.cKDTree`` (``search="kdtree"``; query threads ``knn_workers``, -1 = all cores)
+    or from the range-image search (``search="grid"``, see ``grid_neighbours``: exact where it can
+    prove it, typically 87-99% of a spinning-lidar scan, the rest queried on the kd-tree;
+    single-threaded; ``rings`` order its rows). ``"auto"`` is the kd-tree: on the real scans of
+    ../shared/data the grid search is not yet faster (see benchmarks/bench_engine.py). Both give the
+    same neighbours (up to distance ties), hence the same normals. The covariance is centred at the
+    point (GOM eq. 4) and its smallest eigenvector is the normal.
 
     Returns:
         normals: (N, 3) float64 unit normals (sign arbitrary), NaN where undefined.
@@ -219,6 +209,8 @@ def normal_ray_angles(
     pts = _check_points(points_xyz)
     if not isinstance(k, (int, np.integer)) or k < 2:
         raise InputError(f"k must be an integer >= 2, got {k!r}")
+    if search not in ("auto", "kdtree", "grid"):
+        raise InputError(f"unknown neighbour search {search!r}; expected auto, kdtree or grid")
     sensor = _check_sensor(sensor_xyz)
     n = pts.shape[0]
     normals = np.full((n, 3), np.nan)
@@ -229,21 +221,21 @@ def normal_ray_angles(
         return normals, angles
     good = np.ascontiguousarray(pts[finite])
     k_eff = min(int(k), m - 1)
-    if search not in ("auto", "kdtree", "grid"):
-        raise InputError(f"unknown neighbour search {search!r}; expected auto, kdtree or grid")
-    use_grid = search == "grid" or (search == "auto" and (rings is not None or organized is not None))
+    use_grid = search == "grid"
+    neighbours = np.full((m, k_eff + 1), -1, dtype=np.int64)
+    todo = np.arange(m)
     if use_grid:
         ring_good = None if rings is None else _check_channel(rings, n, "rings")[finite]
-        org_good = None
-        if organized is not None:
-            org_good = (organized[0], _check_channel(organized[1], n, "organized_index")[finite])
-        neighbours = _grid_neighbours(good, k_eff, sensor, ring_good, org_good, grid or GridSearchParams())
-    else:
+        found = _grid_neighbours(good, k_eff, sensor, ring_good, grid or GridSearchParams())
+        neighbours[:, :k_eff] = found.neighbours
+        todo = np.flatnonzero(~found.exact)
+    if todo.size:
+        # the kd-tree for the points the grid could not prove (all of them without the grid)
         tree = cKDTree(good, balanced_tree=False)
-        order = tree.indices
-        _, idx = tree.query(good[order], k=k_eff + 1, workers=knn_workers)
-        neighbours = np.empty((m, k_eff + 1), dtype=np.int64)
-        neighbours[order] = np.asarray(idx, dtype=np.int64).reshape(m, k_eff + 1)
+        if todo.size == m:
+            todo = tree.indices  # the tree's own order: faster queries
+        _, idx = tree.query(good[todo], k=k_eff + 1, workers=knn_workers)
+        neighbours[todo] = np.asarray(idx, dtype=np.int64).reshape(todo.size, k_eff + 1)
     good_normals = np.empty((m, 3))
     good_angles = np.empty(m)
     lidar_feature_kernels.normal_ray_angles(good, neighbours, k_eff, sensor, good_normals, good_angles)
@@ -275,8 +267,10 @@ def compute_lidar_feature(
         k: neighbours for ``normals``.
         sensor_xyz: sensor origin in the points' frame, metres.
         knn_workers: threads of the kd-tree neighbour query for ``normals`` (-1: all cores).
-        rings, organized, search: neighbour search for ``normals`` (see ``normal_ray_angles``):
-            with a ring channel or an organised grid ``"auto"`` uses the range-image window.
+        rings: optional (N,) laser ring per point, for the ``normals`` grid search.
+        organized: optional ((height, width), (N,) flat index) of an organised cloud: its rows
+            serve as rings when ``rings`` is not given.
+        search: neighbour search for ``normals`` (see ``normal_ray_angles``; ``"auto"``: kd-tree).
 
     Returns:
         (N,) float32 in [0, 1]; NaN where the point (or its intensity, or its normal) is undefined.
@@ -285,6 +279,9 @@ def compute_lidar_feature(
         InputError: bad shapes or dtypes, unknown kind, missing intensity.
     """
     pts = _check_points(points_xyz)
+    if rings is None and organized is not None:
+        (_, width), index = organized
+        rings = _check_channel(index, pts.shape[0], "organized_index") // max(1, int(width))
     if kind not in FEATURE_KINDS:
         raise InputError(f"unknown lidar feature {kind!r}; expected one of {', '.join(FEATURE_KINDS)}")
     n = pts.shape[0]
@@ -301,8 +298,7 @@ def compute_lidar_feature(
         values = np.linalg.norm(pts - sensor, axis=1)
     else:
         _, values = normal_ray_angles(
-            pts, k=k, sensor_xyz=sensor_xyz, knn_workers=knn_workers, rings=rings, organized=organized,
-            search=search,
+            pts, k=k, sensor_xyz=sensor_xyz, knn_workers=knn_workers, rings=rings, search=search,
         )  # fmt: skip
     return equalize_rank(values)
 
@@ -337,8 +333,8 @@ def lidar_frame_feature(
 ) -> LidarFeatureResult:
     """Engine stage: the ``kind`` feature of one scan.
 
-    For normals the scan's ``ring`` channel or organised grid, when it has one, feeds the grid
-    neighbour search (``search="auto"``).
+    For normals with ``search="grid"`` the scan's ``ring`` channel or organised grid, when it has
+    one, gives the rows of the range-image search.
 
     ``knn_workers`` defaults to 1 because the engine already runs one single-threaded worker
     process per core; more query threads would only oversubscribe the cores.

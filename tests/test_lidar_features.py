@@ -11,8 +11,10 @@ from pipeline.errors import InputError
 from pipeline.frames import LidarFrame
 from stages import lidar_feature_kernels
 from stages.lidar_features import (
+    GridSearchParams,
     compute_lidar_feature,
     equalize_rank,
+    grid_neighbours,
     lidar_frame_feature,
     normal_ray_angles,
 )
@@ -311,3 +313,89 @@ def test_single_and_multi_threaded_neighbour_queries_agree() -> None:
     one = compute_lidar_feature(points, "normals", knn_workers=1)
     many = compute_lidar_feature(points, "normals", knn_workers=-1)
     np.testing.assert_array_equal(one, many)
+
+
+# ------------------------------------------------- range-image (grid) neighbour search
+
+
+def ring_scan(rings: int, cols: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A spinning-lidar-like scan: ground plane + walls, ``rings`` lasers x ``cols`` azimuths."""
+    az = np.linspace(-np.pi, np.pi, cols, endpoint=False) + rng.uniform(0, 1e-3, cols)
+    el = np.radians(np.linspace(-24.8, 2.0, rings))
+    a, e = np.meshgrid(az, el)
+    walls = 4.0 + 20.0 * np.abs(np.sin(2 * a)) + rng.normal(scale=0.02, size=a.shape)
+    ground = np.where(e < 0, 1.73 / np.maximum(-np.sin(e), 1e-3), np.inf)
+    r = np.minimum(walls, ground)
+    pts = np.stack([r * np.cos(e) * np.cos(a), r * np.cos(e) * np.sin(a), r * np.sin(e)], axis=-1)
+    ring = np.broadcast_to(np.arange(rings)[:, None], a.shape)
+    return pts.reshape(-1, 3), ring.reshape(-1).astype(np.uint16)
+
+
+def brute_knn_dist(points: np.ndarray, k: int) -> np.ndarray:
+    d2 = np.sum((points[:, None, :] - points[None, :, :]) ** 2, axis=2)
+    np.fill_diagonal(d2, np.inf)
+    return np.sqrt(np.sort(d2, axis=1)[:, :k])
+
+
+@pytest.mark.parametrize("use_rings", [True, False])
+def test_grid_neighbours_proven_exact_equal_bruteforce(use_rings: bool) -> None:
+    pts, ring = ring_scan(16, 180, np.random.default_rng(30))
+    found = grid_neighbours(pts, 8, rings=ring if use_rings else None, params=GridSearchParams(elevation_bin_deg=1.0))
+    assert found.exact.mean() > 0.6
+    got = np.linalg.norm(pts[found.neighbours] - pts[:, None, :], axis=2)
+    want = brute_knn_dist(pts, 8)
+    np.testing.assert_allclose(got[found.exact], want[found.exact], rtol=0, atol=1e-12)
+    assert (found.neighbours != np.arange(len(pts))[:, None]).all()  # never itself
+
+
+def test_grid_normals_identical_to_kdtree_with_shuffled_ring_ids() -> None:
+    rng = np.random.default_rng(31)
+    pts, ring = ring_scan(32, 600, rng)
+    perm = rng.permutation(32)  # ring ids need not follow elevation (as on several vendors' lidars)
+    ring = perm[ring]
+    pts[::97] = np.nan
+    _, kd = normal_ray_angles(pts, search="kdtree")
+    for rings in (ring, None):
+        _, grid = normal_ray_angles(pts, search="grid", rings=rings)
+        np.testing.assert_array_equal(grid, kd)
+    feature = compute_lidar_feature(pts, "normals", rings=ring, search="grid")
+    np.testing.assert_array_equal(feature, compute_lidar_feature(pts, "normals"))
+
+
+def test_grid_search_plane_incidence_angles() -> None:
+    # a wall x = 10 seen from the origin: angle between normal (1, 0, 0) and the ray is acos(x / r)
+    y, z = np.meshgrid(np.linspace(-5, 5, 60), np.linspace(-2, 2, 30))
+    pts = np.stack([np.full(y.size, 10.0), y.ravel(), z.ravel()], axis=1)
+    _, angles = normal_ray_angles(pts, search="grid")
+    truth = np.arccos(10.0 / np.linalg.norm(pts, axis=1))
+    np.testing.assert_allclose(angles, truth, atol=1e-9)
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 3])
+def test_grid_search_tiny_clouds(n: int) -> None:
+    pts = np.random.default_rng(32).normal(size=(n, 3)) + np.array([5.0, 0.0, 0.0])
+    _, grid = normal_ray_angles(pts, search="grid")
+    _, kd = normal_ray_angles(pts, search="kdtree")
+    np.testing.assert_array_equal(grid, kd)
+    found = grid_neighbours(pts, 2)
+    assert found.neighbours.shape == (n, 2)
+    with pytest.raises(InputError):
+        grid_neighbours(np.full((3, 3), np.nan))
+    with pytest.raises(InputError):
+        normal_ray_angles(pts, search="octree")  # type: ignore[arg-type]
+
+
+def test_kitti_grid_search_identical_to_kdtree(shared_data: Path) -> None:
+    """Real HDL-64 scan (no ring channel: elevation bins): the grid path proves most points exact
+    and the rest fall back to the kd-tree, so the angles are identical."""
+    from readers.frames import iter_lidar_frames
+    from readers.open import open_log
+
+    with open_log(shared_data / "logs" / "kitti_2011_09_26.mcap") as reader:
+        scan = next(iter_lidar_frames(reader, "/kitti/velo/pointcloud"))
+    pts = np.asarray(scan.points_xyz, dtype=np.float64)
+    found = grid_neighbours(pts, 8)
+    assert found.exact.mean() > 0.85
+    _, kd = normal_ray_angles(pts, search="kdtree")
+    _, grid = normal_ray_angles(pts, search="grid")
+    np.testing.assert_array_equal(grid, kd)

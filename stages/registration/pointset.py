@@ -6,6 +6,7 @@ lazily and cached.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -17,10 +18,12 @@ from scipy.spatial import cKDTree
 from pipeline.errors import ConfigError, InputError
 from pipeline.frames import LidarFrame
 from stages.registration.covariances import estimate_covariances, knn_indices
-from stages.registration.voxel import voxel_downsample
+from stages.registration.voxel import voxel_downsample_capped
 
 if TYPE_CHECKING:
     from stages.registration.gicp import RegistrationConfig
+
+log = logging.getLogger(__name__)
 
 CHANNEL_MODES: dict[str, tuple[str, ...]] = {
     "none": (),
@@ -29,6 +32,11 @@ CHANNEL_MODES: dict[str, tuple[str, ...]] = {
     "combined": ("intensity", "r", "g", "b"),
 }
 """Descriptor channels of each channel mode, in column order."""
+
+MAX_PREPARED_POINTS = 500_000
+"""Most points a prepared scan keeps: a scan still larger after voxel downsampling is downsampled
+again with the voxel doubled until it fits (bounds memory and time of the covariances, e.g. for
+a 10M-point scan with little structure at the voxel size)."""
 
 MIN_CHANNEL_VARIANCE = 1e-12
 POINT_TO_POINT_VARIANCE = 0.5
@@ -154,27 +162,45 @@ def prepare_pointset(
     *,
     stamp_ns: int = 0,
     frame_id: str = "",
+    max_points: int | None = MAX_PREPARED_POINTS,
 ) -> PointSet:
     """Drop non-finite points, voxel-downsample (averaging descriptors) and compute covariances.
+
+    Voxel downsampling comes first and is memory-lean (float32 points stay float32 until the voxel
+    means; see ``voxel_downsample``); covariances are computed on the downsampled points only. When
+    more than ``max_points`` voxels are occupied (and the voxel size is > 0) the voxel size is doubled
+    until at most ``max_points`` remain (``voxel_downsample_capped``; a warning is logged).
 
     Args:
         points_xyz: (N, 3) points, metres, scan frame.
         channels: per-point arrays by name (``intensity``, ``r``, ``g``, ``b``), as in LidarFrame.
         config: registration settings (method, channels, voxel size, k, epsilon, Lambda).
+        max_points: cap on the prepared points (None: no cap).
 
     Raises:
         InputError: wrong shapes, a missing channel, fewer than k points after downsampling.
         ConfigError: unknown channel mode.
     """
     names = channel_names_for(config.channels)
-    pts = np.asarray(points_xyz, dtype=np.float64)
+    pts = np.asarray(points_xyz)
+    if not np.issubdtype(pts.dtype, np.floating):
+        pts = pts.astype(np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise InputError(f"points_xyz must be (N, 3), got {pts.shape}")
     desc = _descriptor_columns(pts.shape[0], channels, names)
-    finite = np.all(np.isfinite(pts), axis=1) & np.all(np.isfinite(desc), axis=1)
+    finite = np.asarray(np.isfinite(pts).all(axis=1))
+    if desc.shape[1]:
+        finite &= np.isfinite(desc).all(axis=1)
     dropped = int(pts.shape[0] - np.count_nonzero(finite))
-    pts, desc = pts[finite], desc[finite]
-    pts, desc, _ = voxel_downsample(pts, config.voxel_size_m, desc)
+    pts, desc, _, voxel_m = voxel_downsample_capped(
+        pts, config.voxel_size_m, desc, valid=finite, max_voxels=max_points
+    )
+    del finite
+    if voxel_m != config.voxel_size_m:
+        log.warning(
+            "scan at %d keeps %d points only with %.3g m voxels (not %.3g m): more than max_points=%d",
+            stamp_ns, pts.shape[0], voxel_m, config.voxel_size_m, max_points,
+        )  # fmt: skip
     if pts.shape[0] < config.k_neighbors:
         raise InputError(
             f"scan has {pts.shape[0]} points after dropping {dropped} non-finite ones and "
@@ -207,10 +233,13 @@ def prepare_pointset(
     )
 
 
-def pointset_from_frame(frame: LidarFrame, config: RegistrationConfig) -> PointSet:
+def pointset_from_frame(
+    frame: LidarFrame, config: RegistrationConfig, max_points: int | None = MAX_PREPARED_POINTS
+) -> PointSet:
     """``prepare_pointset`` on a LidarFrame (its channels, stamp and frame id)."""
     pointset = prepare_pointset(
-        frame.points_xyz, frame.channels, config, stamp_ns=frame.stamp_ns, frame_id=frame.frame_id
-    )
+        frame.points_xyz, frame.channels, config, stamp_ns=frame.stamp_ns, frame_id=frame.frame_id,
+        max_points=max_points,
+    )  # fmt: skip
     pointset.dropped_points += frame.dropped_points
     return pointset
