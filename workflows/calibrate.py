@@ -245,65 +245,55 @@ def run_calibration(
     ) as progress:
         for topic in camera_topics:
             collected[topic] = collect_frames(reader, lidar_topic, topic, config, tree, progress)
-    results: list[PairCalibration] = []
     if joint and len(camera_topics) > 1:
-        ref = camera_topics[0]
-        lidar_frame, ref_frame = collected[ref].lidar_frame, collected[ref].camera_frame
-        T_init = initial_guess(tree, lidar_frame, ref_frame, initial)
-        frames: list[CalibrationFrame] = []
-        T_cam_ref: dict[str, Mat4] = {}
-        for topic in camera_topics:
-            col = collected[topic]
-            if tree is None or not tree.can_lookup(col.camera_frame, ref_frame):
-                raise InputError(
-                    f"--joint needs the tf between cameras {ref_frame!r} and {col.camera_frame!r}"
-                )
-            T_cam_ref[topic] = tree.lookup(col.camera_frame, ref_frame)
-            for f in col.frames:
-                f.T_camera_camera0 = T_cam_ref[topic]
-                frames.append(f)
-        result = calibrate(frames, T_init, solver)
-        for topic in camera_topics:
-            col = collected[topic]
-            results.append(
-                PairCalibration(
-                    lidar_topic,
-                    topic,
-                    lidar_frame,
-                    col.camera_frame,
-                    result,
-                    T_cam_ref[topic] @ result.T_camera_lidar,
-                    T_cam_ref[topic] @ T_init,
-                    col.frames,
-                    col.images,
-                    col.lidar_stamps,
-                    col.n_points,
-                    col.compensated,
-                )  # fmt: skip
-            )
-        return results
+        return _calibrate_joint(lidar_topic, camera_topics, collected, tree, initial, solver)
+    results: list[PairCalibration] = []
     for topic in camera_topics:
         col = collected[topic]
         T_init = initial_guess(tree, col.lidar_frame, col.camera_frame, initial)
         _check_visible(col.frames, T_init, topic)
         result = calibrate(col.frames, T_init, solver)
-        results.append(
-            PairCalibration(
-                lidar_topic,
-                topic,
-                col.lidar_frame,
-                col.camera_frame,
-                result,
-                result.T_camera_lidar,
-                T_init,
-                col.frames,
-                col.images,
-                col.lidar_stamps,
-                col.n_points,
-                col.compensated,
-            )  # fmt: skip
-        )
+        results.append(_pair(lidar_topic, topic, col, result, result.T_camera_lidar, T_init))
     return results
+
+
+def _pair(
+    lidar_topic: str, topic: str, col: _Collected, result: CalibrationResult, T_camera_lidar: Mat4, T_init: Mat4
+) -> PairCalibration:
+    return PairCalibration(
+        lidar_topic, topic, col.lidar_frame, col.camera_frame, result, T_camera_lidar, T_init,
+        col.frames, col.images, col.lidar_stamps, col.n_points, col.compensated,
+    )  # fmt: skip
+
+
+def _calibrate_joint(
+    lidar_topic: str,
+    camera_topics: list[str],
+    collected: dict[str, _Collected],
+    tree: TransformTree | None,
+    initial: str | None,
+    solver: SolverConfig,
+) -> list[PairCalibration]:
+    """One unknown lidar pose for the whole rig: ``T_camera_k_lidar = T_camera_k_camera0 @ T_camera0_lidar``,
+    the camera-to-camera transforms from the log's tf; camera0 is the first camera topic."""
+    ref = collected[camera_topics[0]]
+    T_init = initial_guess(tree, ref.lidar_frame, ref.camera_frame, initial)
+    frames: list[CalibrationFrame] = []
+    T_cam_ref: dict[str, Mat4] = {}
+    for topic in camera_topics:
+        col = collected[topic]
+        if tree is None or not tree.can_lookup(col.camera_frame, ref.camera_frame):
+            raise InputError(f"--joint needs the tf between cameras {ref.camera_frame!r} and {col.camera_frame!r}")
+        T_cam_ref[topic] = tree.lookup(col.camera_frame, ref.camera_frame)
+        for f in col.frames:
+            f.T_camera_camera0 = T_cam_ref[topic]
+            frames.append(f)
+    result = calibrate(frames, T_init, solver)
+    return [
+        _pair(lidar_topic, topic, collected[topic], result, T_cam_ref[topic] @ result.T_camera_lidar,
+              T_cam_ref[topic] @ T_init)  # fmt: skip
+        for topic in camera_topics
+    ]
 
 
 def _check_visible(frames: list[CalibrationFrame], T_camera_lidar: Mat4, topic: str) -> None:
