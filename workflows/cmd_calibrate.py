@@ -31,6 +31,11 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--search-m", type=float, metavar="M", help="translation search half-width, metres")
     p.add_argument("--initial", metavar='"x y z roll pitch yaw"', help="T_camera_lidar guess (m, deg)")
     p.add_argument("--joint", action="store_true", help="all cameras at once (camera-camera tf from the log)")
+    p.add_argument(
+        "--camera-camera",
+        action="store_true",
+        help="affine map between two --camera images (GOM 3.2.2) -> camera_camera.parquet",
+    )
     p.add_argument("--no-motion-compensation", action="store_true", help="ignore /tf odometry")
     p.add_argument("--estimate-focal", action="store_true", help="also estimate a focal length scale")
     p.add_argument("--particles", type=int, metavar="N", help="particle swarm size (default 200)")
@@ -64,6 +69,10 @@ def run(args: argparse.Namespace) -> int:
     from workflows.sensors import resolve_cameras, resolve_lidar
 
     config = config_from_args(args, overrides(args))
+    if args.camera_camera:
+        from workflows.calibrate_cameras import run_cli
+
+        return run_cli(args, config)
     out_dir = prepare_out_dir(args.out)
     with open_logs(args.logs, config, quiet=args.quiet) as reader:
         lidar = resolve_lidar(reader, args.lidar)
