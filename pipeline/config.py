@@ -110,6 +110,7 @@ class CalibrationConfig:
         estimate_focal: also estimate a common scale of fx and fy.
         min_points: scans with fewer points are skipped.
         motion_compensation: move lidar points to the camera stamp with the log's /tf odometry.
+        occlusion_filter: drop lidar points hidden from the camera at the initial guess (z-buffer).
     """
 
     metric: Literal["gom", "nmi", "levinson"] = "gom"
@@ -127,6 +128,7 @@ class CalibrationConfig:
     estimate_focal: bool = False
     min_points: int = 100
     motion_compensation: bool = True
+    occlusion_filter: bool = False
 
     def validate(self) -> None:
         _require(self.frames >= 1, "calibration.frames", "must be >= 1")

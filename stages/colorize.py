@@ -46,7 +46,7 @@ def _sample_bilinear(image: NDArray[np.generic], uv: NDArray[np.float64]) -> NDA
     return np.repeat(out, 3, axis=1) if out.shape[1] == 1 else out
 
 
-def _unoccluded(
+def unoccluded(
     uv: NDArray[np.float64],
     depth: NDArray[np.float64],
     shape: tuple[int, int],
@@ -54,7 +54,11 @@ def _unoccluded(
     rel_tol: float,
     abs_tol_m: float,
 ) -> NDArray[np.bool_]:
-    """Coarse z-buffer: True where the point is within the tolerance of the nearest depth in its cell."""
+    """Coarse z-buffer: True where the point is within the tolerance of the nearest depth in its cell.
+
+    ``uv`` (M, 2) pixel positions of points that project into an image of ``shape`` (H, W), ``depth``
+    (M,) their camera z, metres; kept when ``depth <= (1 + rel_tol) * nearest + abs_tol_m``.
+    """
     rows = (np.clip(np.rint(uv[:, 1]), 0, shape[0] - 1) // cell_px).astype(np.int64)
     cols = (np.clip(np.rint(uv[:, 0]), 0, shape[1] - 1) // cell_px).astype(np.int64)
     n_cols = (shape[1] + cell_px - 1) // cell_px
@@ -113,7 +117,7 @@ def colorize(
         if idx.size == 0:
             continue
         if occlusion:
-            keep = _unoccluded(
+            keep = unoccluded(
                 uv, p_cam[:, 2], img.shape[:2], occlusion_cell_px, occlusion_rel_tol, occlusion_abs_tol_m
             )
             idx, uv = idx[keep], uv[keep]

@@ -114,6 +114,7 @@ def solver_config(config: Config) -> SolverConfig:
         keep_fraction=c.keep_fraction,
         sphere_k=c.k_neighbours,
         estimate_focal=c.estimate_focal,
+        occlusion_filter=c.occlusion_filter,
     )
 
 
