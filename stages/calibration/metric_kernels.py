@@ -152,6 +152,20 @@ def _in_view(u: float, v: float, width: int, height: int, mask: np.ndarray) -> b
 
 
 @njit(inline="always", **NJIT_FLAGS)
+def _pose_pixel(R: np.ndarray, points: np.ndarray, i: int, cam: np.ndarray, fs: float, width: int,
+                height: int, mask: np.ndarray) -> tuple[float, float, bool]:
+    """Pixel of lidar point i under the 4x4 pose R and whether it is in view (front, image, mask)."""
+    x0 = points[i, 0]
+    y0 = points[i, 1]
+    z0 = points[i, 2]
+    x = R[0, 0] * x0 + R[0, 1] * y0 + R[0, 2] * z0 + R[0, 3]
+    y = R[1, 0] * x0 + R[1, 1] * y0 + R[1, 2] * z0 + R[1, 3]
+    z = R[2, 0] * x0 + R[2, 1] * y0 + R[2, 2] * z0 + R[2, 3]
+    u, v, ok = project_point(x, y, z, cam, fs)
+    return u, v, ok and _in_view(u, v, width, height, mask)
+
+
+@njit(inline="always", **NJIT_FLAGS)
 def sample_bicubic2(planes: np.ndarray, u: float, v: float) -> tuple[float, float]:
     """Keys bicubic sample of a 2-channel (H, W, 2) image at (u, v): unrolled interior fast path,
     clamped edges otherwise (same values as ``sample_bicubic``)."""
@@ -266,14 +280,8 @@ def levinson_batch_kernel(points: np.ndarray, lidar_weight: np.ndarray, edge_pla
         s = 0.0
         c = 0
         for i in range(n):
-            x0 = points[i, 0]
-            y0 = points[i, 1]
-            z0 = points[i, 2]
-            x = R[0, 0] * x0 + R[0, 1] * y0 + R[0, 2] * z0 + R[0, 3]
-            y = R[1, 0] * x0 + R[1, 1] * y0 + R[1, 2] * z0 + R[1, 3]
-            z = R[2, 0] * x0 + R[2, 1] * y0 + R[2, 2] * z0 + R[2, 3]
-            u, v, ok = project_point(x, y, z, cam, fs)
-            if not ok or not _in_view(u, v, width, height, mask):
+            u, v, ok = _pose_pixel(R, points, i, cam, fs, width, height, mask)
+            if not ok:
                 continue
             sample_bicubic(edge_planes, u, v, e)
             s += lidar_weight[i] * e[0]
@@ -303,14 +311,8 @@ def nmi_batch_kernel(points: np.ndarray, lidar_bin: np.ndarray, intensity_planes
         e = np.zeros(1)
         c = 0
         for i in range(n):
-            x0 = points[i, 0]
-            y0 = points[i, 1]
-            z0 = points[i, 2]
-            x = R[0, 0] * x0 + R[0, 1] * y0 + R[0, 2] * z0 + R[0, 3]
-            y = R[1, 0] * x0 + R[1, 1] * y0 + R[1, 2] * z0 + R[1, 3]
-            z = R[2, 0] * x0 + R[2, 1] * y0 + R[2, 2] * z0 + R[2, 3]
-            u, v, ok = project_point(x, y, z, cam, fs)
-            if not ok or not _in_view(u, v, width, height, mask):
+            u, v, ok = _pose_pixel(R, points, i, cam, fs, width, height, mask)
+            if not ok:
                 continue
             sample_bicubic(intensity_planes, u, v, e)
             b = int(e[0] * bins)
