@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import functools
 import logging
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -129,16 +129,26 @@ def map_pointsets(
     return steps, voxel_map, initial is not None
 
 
+class NotEnoughScansError(InputError):
+    """Fewer than two usable scans: nothing to register."""
+
+
 def run_mapping(
-    paths: list[str],
+    paths: Sequence[str],
     reader: LogReader,
     lidar_topic: str,
     config: Config,
     engine: Engine,
+    stage: Callable[[LidarFrame], PointSet] | None = None,
 ) -> MappingOutcome:
-    """Prepare every scan on the engine (log order), then chain the odometry and build the map."""
-    reg = registration_config(config)
-    stage = functools.partial(prepare_scan, config=reg)
+    """Prepare every scan on the engine (log order) with ``stage`` (default ``prepare_scan``), then chain
+    the odometry and build the map.
+
+    Raises:
+        NotEnoughScansError: fewer than two scans survive the stage.
+    """
+    if stage is None:
+        stage = functools.partial(prepare_scan, config=registration_config(config))
     pointsets = list(
         engine.map_frames(paths, lidar_topic, stage, batch_size=config.engine.batch_size, ordered=True,
                           allow_truncated=config.io.allow_truncated, desc="scans")
@@ -146,7 +156,7 @@ def run_mapping(
     skipped = engine.stats.frames_skipped
     if len(pointsets) < 2:
         reasons = ", ".join(engine.stats.skip_examples[:2])
-        raise InputError(f"need at least 2 usable scans on {lidar_topic} to map, got {len(pointsets)}"
+        raise NotEnoughScansError(f"need at least 2 usable scans on {lidar_topic} to map, got {len(pointsets)}"
                          + (f" ({reasons})" if reasons else ""))  # fmt: skip
     pointsets.sort(key=lambda p: p.stamp_ns)
     try:

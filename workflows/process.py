@@ -5,6 +5,7 @@ the write-back log. ``result.json`` is written last: its presence means the outp
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import logging
@@ -12,13 +13,12 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
 from pipeline.config import Config, write_toml
 from pipeline.engine import Engine
-from pipeline.errors import InputError
 from pipeline.frames import LidarFrame
 from pipeline.pairing import raw_header_stamp_ns
 from pipeline.transforms import apply
@@ -36,6 +36,7 @@ from workflows.sensors import resolve_cameras, resolve_lidar
 log = logging.getLogger(__name__)
 
 RESULT_FILE = "result.json"
+ChannelMode = Literal["none", "intensity", "color", "combined"]
 
 
 @dataclass
@@ -106,8 +107,14 @@ def _nearest_image(reader: Any, topic: str, stamp_ns: int, tolerance_ns: int) ->
     if best is None:
         return None
     frame = decode_camera_image(reader.topics[topic].msgtype, reader.deserialize(best), topic, best.log_time_ns)
-    frame.camera = CameraInfoTracker(reader, camera_info_topic_for(topic, reader.topics)).model
+    frame.camera = _camera_model(reader, topic)
     return frame
+
+
+@functools.lru_cache(maxsize=16)
+def _camera_model(reader: Any, topic: str) -> Any:
+    """The first CameraInfo of ``topic``'s camera, read once per worker and topic."""
+    return CameraInfoTracker(reader, camera_info_topic_for(topic, reader.topics)).model
 
 
 def colorize_scan(frame: LidarFrame, source: ColorSource) -> LidarFrame:
@@ -138,7 +145,7 @@ def prepare_colored_scan(frame: LidarFrame, source: ColorSource | None, config: 
     return mapping.prepare_scan(frame, config)
 
 
-def _mapping_channels(config: Config, have_color: bool, have_intensity: bool) -> str:
+def _mapping_channels(config: Config, have_color: bool, have_intensity: bool) -> ChannelMode:
     wanted = config.mapping.channels
     if wanted in ("color", "combined") and not have_color:
         wanted = "intensity" if have_intensity else "none"
@@ -179,40 +186,24 @@ def process_log(
         times["calibration"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
-        lidar_info = reader.topics[lidar_topic]
         source = ColorSource(
             tuple(paths), tuple((p.camera_topic, tuple(map(tuple, p.T_camera_lidar.tolist()))) for p in pairs),
             config.io.pairing_tolerance_ns, config.io.allow_truncated,
         )  # fmt: skip
-        map_config = Config(**{**config.__dict__})
-        map_config.mapping = type(config.mapping)(**{**config.mapping.__dict__})
         first = next(iter(reader.messages(topics=[lidar_topic])), None)
         has_intensity = first is not None and any(
             f.name == "intensity" for f in reader.deserialize(first).fields)
-        map_config.mapping.channels = _mapping_channels(config, True, has_intensity)  # type: ignore[assignment]
+        map_config = dataclasses.replace(config, mapping=dataclasses.replace(
+            config.mapping, channels=_mapping_channels(config, True, has_intensity)))  # fmt: skip
         reg = mapping.registration_config(map_config)
-        stage = functools.partial(prepare_colored_scan, source=source if "color" in reg.channels or
-                                  reg.channels == "combined" else None, config=reg)  # fmt: skip
+        uses_color = reg.channels in ("color", "combined")
+        stage = functools.partial(prepare_colored_scan, source=source if uses_color else None, config=reg)
         outcome = None
-        if lidar_info.count >= 2:
+        try:
             with Engine(scheduler=scheduler, workers=workers, quiet=quiet) as engine:
-                pointsets = list(engine.map_frames(paths, lidar_topic, stage, batch_size=config.engine.batch_size,
-                                                   ordered=True, allow_truncated=config.io.allow_truncated,
-                                                   desc="scans"))  # fmt: skip
-            if len(pointsets) >= 2:
-                from readers.frames import load_tf_tree
-
-                try:
-                    tree = load_tf_tree(reader)
-                except InputError:
-                    tree = None
-                steps, voxel_map, used_tf = mapping.map_pointsets(pointsets, map_config, tree)
-                outcome = mapping.MappingOutcome(
-                    lidar_topic, pointsets[0].frame_id.lstrip("/"), map_config.mapping.channels, steps,
-                    voxel_map.points(), voxel_map.channels(), engine.stats.frames_skipped, used_tf,
-                )  # fmt: skip
-        if outcome is None:
-            warnings.append(f"mapping skipped: fewer than 2 usable scans on {lidar_topic}")
+                outcome = mapping.run_mapping(paths, reader, lidar_topic, map_config, engine, stage)
+        except mapping.NotEnoughScansError as err:
+            warnings.append(f"mapping skipped: {err}")
         times["mapping"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
