@@ -111,6 +111,9 @@ class CalibrationConfig:
         min_points: scans with fewer points are skipped.
         motion_compensation: move lidar points to the camera stamp with the log's /tf odometry.
         occlusion_filter: drop lidar points hidden from the camera at the initial guess (z-buffer).
+        gradient_viewpoint: where lidar gradients are taken: ``camera`` (paper: sphere at the camera)
+            or ``lidar`` (the lidar's own sphere, edge directions carried into the camera's view).
+        gradient_fit: ``paper`` (Algorithm 1) or ``lsq`` (least-squares gradient over the neighbours).
     """
 
     metric: Literal["gom", "nmi", "levinson"] = "gom"
@@ -123,12 +126,14 @@ class CalibrationConfig:
     blur_sigma_px: float = 0.0
     k_neighbours: int = 8
     seed: int = 0
-    repeats: int = 1
+    repeats: int = 3
     keep_fraction: float = 0.5
     estimate_focal: bool = False
     min_points: int = 100
     motion_compensation: bool = True
     occlusion_filter: bool = False
+    gradient_viewpoint: Literal["camera", "lidar"] = "camera"
+    gradient_fit: Literal["paper", "lsq"] = "paper"
 
     def validate(self) -> None:
         _require(self.frames >= 1, "calibration.frames", "must be >= 1")

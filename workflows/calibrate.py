@@ -115,6 +115,8 @@ def solver_config(config: Config) -> SolverConfig:
         sphere_k=c.k_neighbours,
         estimate_focal=c.estimate_focal,
         occlusion_filter=c.occlusion_filter,
+        gradient_viewpoint=c.gradient_viewpoint,
+        gradient_fit=c.gradient_fit,
     )
 
 

@@ -15,7 +15,11 @@ from scipy.spatial import cKDTree
 
 from pipeline.errors import ProcessingError
 from pipeline.transforms import apply
-from stages.calibration.sphere_kernels import depth_discontinuity_kernel, sphere_gradient_kernel
+from stages.calibration.sphere_kernels import (
+    depth_discontinuity_kernel,
+    sphere_gradient_kernel,
+    sphere_gradient_lsq_kernel,
+)
 
 
 @dataclass
@@ -63,7 +67,7 @@ def sphere_neighbours(sphere_uv: NDArray[np.float64], k: int = 8) -> NDArray[np.
 
 def compute_sphere_gradients(points_xyz: NDArray[np.floating], values: NDArray[np.floating],
                              T_camera_lidar: NDArray[np.float64], k: int = 8,
-                             normalise: bool = False) -> LidarGradients:
+                             normalise: bool = False, fit: str = "paper") -> LidarGradients:
     """Gradients of a per-point lidar feature as seen from the camera at ``T_camera_lidar``.
 
     Args:
@@ -72,6 +76,7 @@ def compute_sphere_gradients(points_xyz: NDArray[np.floating], values: NDArray[n
         T_camera_lidar: 4x4 estimate of the extrinsic; the sphere is centred at that camera.
         k: neighbours per point (the paper uses 8).
         normalise: use unit neighbour directions instead of raw angle differences (see kernel).
+        fit: ``paper`` (Algorithm 1) or ``lsq`` (least-squares plane fit, ``sphere_gradient_lsq_kernel``).
     """
     pts = np.asarray(points_xyz, dtype=np.float64)
     vals = np.ascontiguousarray(values, dtype=np.float64).ravel()
@@ -81,7 +86,10 @@ def compute_sphere_gradients(points_xyz: NDArray[np.floating], values: NDArray[n
         raise ProcessingError("lidar points or feature values contain NaN or infinity")
     sphere_uv = sphere_coordinates(apply(T_camera_lidar, pts))
     neighbours = sphere_neighbours(sphere_uv, k)
-    gx, gy, mag = sphere_gradient_kernel(sphere_uv, vals, neighbours, normalise)
+    if fit == "lsq":
+        gx, gy, mag = sphere_gradient_lsq_kernel(sphere_uv, vals, neighbours)
+    else:
+        gx, gy, mag = sphere_gradient_kernel(sphere_uv, vals, neighbours, normalise)
     return LidarGradients(gx, gy, mag, np.arctan2(gy, gx), sphere_uv, neighbours)
 
 
@@ -92,3 +100,83 @@ def depth_discontinuities(points_xyz: NDArray[np.floating], neighbours: NDArray[
     ranges = np.ascontiguousarray(np.linalg.norm(np.asarray(points_xyz, dtype=np.float64), axis=1))
     return np.asarray(depth_discontinuity_kernel(ranges, np.ascontiguousarray(neighbours, dtype=np.int64),
                                                  float(min_jump_m), float(gamma)))
+
+
+def _range_slope_along(sphere_uv: NDArray[np.float64], range_m: NDArray[np.float64],
+                        neighbours: NDArray[np.int64], dir_az: NDArray[np.float64],
+                        dir_polar: NDArray[np.float64], rel_tol: float = 0.05,
+                        abs_tol_m: float = 0.1) -> NDArray[np.float64]:
+    """(N,) slope of range (m per radian) along a sphere direction, from a least-squares plane of range
+    over the neighbours on the same surface (range within ``rel_tol * r + abs_tol_m``): the step along
+    an edge then stays on the surface that carries it (a line on the ground stays on the ground)."""
+    d_uv = sphere_uv[neighbours] - sphere_uv[:, None, :]
+    d_r = range_m[neighbours] - range_m[:, None]
+    same = np.abs(d_r) <= rel_tol * range_m[:, None] + abs_tol_m
+    dx, dy = d_uv[..., 0] * same, d_uv[..., 1] * same
+    a00, a01, a11 = (dx * dx).sum(1), (dx * dy).sum(1), (dy * dy).sum(1)
+    b0, b1 = (dx * d_r).sum(1), (dy * d_r).sum(1)
+    ridge = 0.005 * (a00 + a11) + 1e-18
+    a00, a11 = a00 + ridge, a11 + ridge
+    det = a00 * a11 - a01 * a01
+    slope_x = (a11 * b0 - a01 * b1) / det
+    slope_y = (a00 * b1 - a01 * b0) / det
+    return np.asarray(slope_x * dir_az + slope_y * dir_polar)
+
+
+def lidar_view_gradients(raw_xyz: NDArray[np.floating], points_xyz: NDArray[np.floating],
+                         values: NDArray[np.floating], T_camera_lidar: NDArray[np.float64],
+                         R_motion: NDArray[np.float64] | None = None, k: int = 8,
+                         fit: str = "lsq", step_rad: float = 1e-3) -> LidarGradients:
+    """Lidar gradients taken where the scan was captured and carried into the camera's view.
+
+    On the camera-centred sphere (paper 3.3) a camera displaced from the lidar sees foreground and
+    background points interleave at every depth edge (parallax of ``baseline / range``, much larger than
+    the lidar's angular spacing), so neighbourhoods mix surfaces exactly at the edges that matter, and
+    when the initial translation is off by decimetres the gradients are wrong before the search starts.
+    Here neighbours and gradient come from the lidar's own sphere (its origin at capture, turned like the
+    camera), where every direction holds one surface; each point's edge direction (perpendicular to its
+    gradient) is then moved ``step_rad`` along that sphere, on the point's own surface (the range follows a
+    plane fitted to the neighbours at similar range), both ends are taken to the camera at
+    ``T_camera_lidar`` (with the ego-motion rotation ``R_motion`` between scan and camera stamp), and the
+    gradient orientation is perpendicular to the edge as the camera sees it.
+
+    Args:
+        raw_xyz: (N, 3) points as captured, lidar frame, metres.
+        points_xyz: (N, 3) the same points moved to the camera stamp (``compensate_ego_motion``).
+        values: (N,) lidar feature.
+        T_camera_lidar: 4x4 estimate of the extrinsic.
+        R_motion: 3x3 rotation of the ego-motion from scan to camera stamp (None: none).
+        k, fit: neighbours and gradient fit (see ``compute_sphere_gradients``).
+
+    Returns:
+        gradients with ``gx, gy`` oriented in the camera's sphere, the paper's magnitude from the lidar's
+        view, ``sphere_uv`` of the camera-centred sphere and the lidar-view ``neighbours``.
+    """
+    raw = np.asarray(raw_xyz, dtype=np.float64)
+    pts = np.asarray(points_xyz, dtype=np.float64)
+    T = np.asarray(T_camera_lidar, dtype=np.float64)
+    R = T[:3, :3]
+    T_turn = np.eye(4)
+    T_turn[:3, :3] = R
+    at_lidar = compute_sphere_gradients(raw, values, T_turn, k=k, fit=fit)
+    norm = np.hypot(at_lidar.gx, at_lidar.gy)
+    safe = np.where(norm > 0, norm, 1.0)
+    edge_az, edge_polar = -at_lidar.gy / safe, at_lidar.gx / safe
+    az = at_lidar.sphere_uv[:, 0] + step_rad * edge_az
+    polar = at_lidar.sphere_uv[:, 1] + step_rad * edge_polar
+    rng = np.linalg.norm(raw, axis=1)
+    rng = rng + step_rad * _range_slope_along(at_lidar.sphere_uv, rng, at_lidar.neighbours, edge_az, edge_polar)
+    turned = rng[:, None] * np.column_stack([np.sin(polar) * np.sin(az), -np.cos(polar),
+                                             np.sin(polar) * np.cos(az)])
+    step_lidar = turned @ R - raw  # back to the lidar frame: R^T q for each row q
+    if R_motion is not None:
+        step_lidar = step_lidar @ np.asarray(R_motion, dtype=np.float64).T
+    uv = sphere_coordinates(apply(T, pts))
+    uv_end = sphere_coordinates(apply(T, pts + step_lidar))
+    d_az = np.angle(np.exp(1j * (uv_end[:, 0] - uv[:, 0])))
+    d_polar = uv_end[:, 1] - uv[:, 1]
+    d_norm = np.hypot(d_az, d_polar)
+    d_safe = np.where(d_norm > 0, d_norm, 1.0)
+    gx = np.where(norm > 0, d_polar / d_safe * norm, 0.0)
+    gy = np.where(norm > 0, -d_az / d_safe * norm, 0.0)
+    return LidarGradients(gx, gy, at_lidar.magnitude, np.arctan2(gy, gx), uv, at_lidar.neighbours)
