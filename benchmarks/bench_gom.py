@@ -2,7 +2,8 @@
 
 Prints (1) the time of one GOM evaluation per pose within a 200-pose batch for an 80k-point scan
 against a 1242x375 image, (2) a table of rotation / translation error vs the ``.truth.json``
-reference and runtime for every available real log x {gom, nmi, levinson}, and (3) with
+reference and runtime for every available real log x {gom, nmi, levinson} with the workflow's
+defaults (``fleetcal calibrate``: range+normals, 3 seeded repeats), and (3) with
 ``--seeds N`` the KITTI robustness study: starts 5 deg / 0.5 m off on random axes, search 10 deg / 1 m.
 
     .venv/bin/python benchmarks/bench_gom.py [--seeds 10] [--logs kitti pjlab nuscenes] [--skip-table]
@@ -13,6 +14,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -20,14 +22,20 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.camera_model import CameraModel
-from stages.calibration import CalibrationConfig, GomScorer, calibrate
+from pipeline.config import Config
+from stages.calibration import GomScorer, calibrate
 from tests.test_calibration_real import LOGS, errors, load_real_frames
 from tests.test_calibration_synthetic import perturb
+from workflows.calibrate import solver_config
 
-CASES = {
+CASES = {  # feature: the workflow default (range+normals) unless named
     "kitti": ("kitti_2011_09_26.mcap", {}),
     "pjlab": ("pjlab_road_rig1", {}),
     "nuscenes": ("nuscenes_n015.bag", {"cameras": 6, "ego_motion": True}),
+    "kitti-range": ("kitti_2011_09_26.mcap", {"feature": "range"}),
+    "pjlab-range": ("pjlab_road_rig1", {"feature": "range"}),
+    "nuscenes-range": ("nuscenes_n015.bag", {"cameras": 6, "ego_motion": True, "feature": "range"}),
+    "nuscenes-range-no-ego": ("nuscenes_n015.bag", {"cameras": 6, "ego_motion": False, "feature": "range"}),
     "nuscenes-no-ego": ("nuscenes_n015.bag", {"cameras": 6, "ego_motion": False}),
     "nuscenes-logr": ("nuscenes_n015.bag", {"cameras": 6, "ego_motion": True, "feature": "log_range"}),
     "nuscenes-logr-no-ego": ("nuscenes_n015.bag", {"cameras": 6, "ego_motion": False, "feature": "log_range"}),
@@ -74,7 +82,7 @@ def table(names: list[str], metrics: list[str]) -> None:
         problem = load_real_frames(log, **kwargs)  # type: ignore[arg-type]
         r0, t0 = errors(problem.T_init, problem.T_true)
         for metric in metrics:
-            result = calibrate(problem.frames, problem.T_init, CalibrationConfig(metric=metric))
+            result = calibrate(problem.frames, problem.T_init, replace(solver_config(Config()), metric=metric))
             rot, trans = errors(result.T_camera_lidar, problem.T_true)
             print(f"{name:18s} {metric:9s} {rot:8.3f} {trans:8.3f} {result.score:8.4f} "
                   f"{result.initial_score:8.4f} {result.runtime_s:9.1f} {result.frames_used:6d} "
@@ -92,7 +100,7 @@ def seeds_study(n: int) -> None:
     ok = 0
     for seed in range(n):
         T_start = perturb(problem.T_true, 5.0, 0.5, seed=100 + seed)
-        cfg = CalibrationConfig(search_deg=10.0, search_m=1.0, seed=seed)
+        cfg = replace(solver_config(Config()), search_deg=10.0, search_m=1.0, seed=seed)
         result = calibrate(problem.frames, T_start, cfg)
         rot, trans = errors(result.T_camera_lidar, problem.T_true)
         good = rot <= 0.3 and trans <= 0.10

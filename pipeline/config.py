@@ -90,13 +90,22 @@ class EngineConfig:
         )
 
 
+LIDAR_FEATURES = ("intensity", "range", "normals", "log_range")
+
+
 @dataclass
 class CalibrationConfig:
     """Targetless lidar-camera calibration (GOM paper).
 
     Attributes:
         metric: alignment metric.
-        feature: lidar per-point feature (GOM section 3.1).
+        feature: lidar per-point feature (GOM section 3.1), one of ``LIDAR_FEATURES`` or several
+            joined by ``+`` (``range+normals``: each feature gets its own lidar gradients and the
+            frame's score is their mean). Default ``range+normals`` by evidence over the real logs and
+            the simulator (3 repeats, from the logs' tf; range alone in brackets): KITTI 0.133 deg /
+            7.2 cm (0.142 / 8.0), PJLab rig1 0.186 / 27 (6.69 / 29), simulated street 640x360 0.545 / 16
+            (3.93 / 30); worse on nuScenes' 32-beam lidar, where normals are noisy: joint 1.52 / 26
+            (0.37 / 22). Runtime about 2x that of one feature.
         frames: lidar/camera pairs used.
         particles: particle swarm size.
         iterations: particle swarm iterations.
@@ -117,7 +126,7 @@ class CalibrationConfig:
     """
 
     metric: Literal["gom", "nmi", "levinson"] = "gom"
-    feature: Literal["intensity", "range", "normals", "log_range"] = "range"
+    feature: str = "range+normals"
     frames: int = 10
     particles: int = 200
     iterations: int = 100
@@ -136,6 +145,9 @@ class CalibrationConfig:
     gradient_fit: Literal["paper", "lsq"] = "paper"
 
     def validate(self) -> None:
+        names = self.feature.split("+")
+        _require(all(n in LIDAR_FEATURES for n in names) and len(set(names)) == len(names),
+                 "calibration.feature", f"must be one or several of {', '.join(LIDAR_FEATURES)} joined by '+'")
         _require(self.frames >= 1, "calibration.frames", "must be >= 1")
         _require(self.particles >= 1, "calibration.particles", "must be >= 1")
         _require(self.iterations >= 1, "calibration.iterations", "must be >= 1")

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
+from pipeline.config import Config
 from pipeline.errors import ProcessingError
 from pipeline.pairing import iter_pairs
 from pipeline.transforms import invert, rotation_error_deg, translation_error_m
@@ -22,6 +23,7 @@ from readers.open import open_log
 from stages.calibration import CalibrationConfig, CalibrationFrame, calibrate
 from stages.calibration.calibrator import build_frame
 from tests.conftest import SHARED_DATA
+from workflows.calibrate import solver_config
 
 LOGS = SHARED_DATA / "logs"
 
@@ -42,7 +44,10 @@ def log_path(name: str) -> Path:
     return path
 
 
-def load_real_frames(name: str, feature: str = "range", cameras: int = 1, ego_motion: bool = False,
+DEFAULT_FEATURE = Config().calibration.feature
+
+
+def load_real_frames(name: str, feature: str = DEFAULT_FEATURE, cameras: int = 1, ego_motion: bool = False,
                      max_frames: int | None = None, tolerance_ns: int = 100_000_000,
                      blur_sigma_px: float | None = None) -> RealProblem:
     """Paired frames of ``name`` for its first ``cameras`` camera topics (joint when > 1: camera k
@@ -81,12 +86,13 @@ def errors(T: NDArray[np.float64], T_true: NDArray[np.float64]) -> tuple[float, 
 
 
 def test_kitti_default_settings_from_log_tf() -> None:
+    """The workflow's defaults (range+normals, 3 seeded repeats): measured 0.133 deg / 7.2 cm."""
     log_path("kitti_2011_09_26.mcap")
     problem = load_real_frames("kitti_2011_09_26.mcap")
     assert len(problem.frames) == 2
     rot0, trans0 = errors(problem.T_init, problem.T_true)
     assert rot0 > 1.5 and trans0 > 0.1  # the log's tf is the drifted calibration
-    result = calibrate(problem.frames, problem.T_init, CalibrationConfig())
+    result = calibrate(problem.frames, problem.T_init, solver_config(Config()))
     rot, trans = errors(result.T_camera_lidar, problem.T_true)
     assert rot <= 0.3, f"rotation error {rot:.3f} deg"
     assert trans <= 0.10, f"translation error {trans:.3f} m"
@@ -106,23 +112,27 @@ def test_kitti_search_box_away_from_the_scan_is_a_clear_error() -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(reason="not reached yet: GOM on pjlab_road_rig1 lands 2-7 deg / 0.3-0.8 m off the vendor "
-                          "reference for every feature and blur tried (see benchmarks/bench_gom.py)", strict=False)
 def test_pjlab_two_frames_with_distortion() -> None:
+    """Workflow defaults: measured 0.186 deg / 27 cm (range alone: 6.7 deg / 29 cm). The rotation meets
+    the issue's 0.5 deg; the translation misses its 15 cm (xfail below, after a 35 cm regression guard)."""
     log_path("pjlab_road_rig1")
     problem = load_real_frames("pjlab_road_rig1")
     assert len(problem.frames) == 2
     assert np.any(problem.frames[0].camera.D)
-    result = calibrate(problem.frames, problem.T_init, CalibrationConfig())
+    result = calibrate(problem.frames, problem.T_init, solver_config(Config()))
     rot, trans = errors(result.T_camera_lidar, problem.T_true)
     assert rot <= 0.5, f"rotation error {rot:.3f} deg"
-    assert trans <= 0.15, f"translation error {trans:.3f} m"
+    assert trans <= 0.35, f"translation error {trans:.3f} m"
+    if trans > 0.15:
+        pytest.xfail(f"translation {trans:.3f} m misses the issue's 0.15 m (sideways shift vs yaw, 2 frames)")
 
 
 @pytest.mark.slow
 def test_nuscenes_six_cameras_joint_with_ego_motion() -> None:
     log_path("nuscenes_n015.bag")
-    problem = load_real_frames("nuscenes_n015.bag", cameras=6, ego_motion=True)
+    # range alone: 0.37 deg; the default range+normals gives 1.52 deg here (normals are noisy on the
+    # 32-beam lidar, 5.9 deg alone), so this rig needs --feature range.
+    problem = load_real_frames("nuscenes_n015.bag", feature="range", cameras=6, ego_motion=True)
     assert len(problem.frames) == 6
     result = calibrate(problem.frames, problem.T_init, CalibrationConfig())
     rot, _ = errors(result.T_camera_lidar, problem.T_true)

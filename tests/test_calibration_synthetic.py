@@ -17,7 +17,7 @@ import pytest
 from numpy.typing import NDArray
 
 from pipeline.camera_model import CameraModel
-from pipeline.errors import ProcessingError
+from pipeline.errors import ConfigError, ProcessingError
 from pipeline.transforms import (
     apply,
     from_xyz_rpy,
@@ -251,3 +251,31 @@ def test_ego_motion_compensation_moves_points_to_camera_time() -> None:
 def test_no_frames_is_a_clear_error() -> None:
     with pytest.raises(ProcessingError, match="no paired"):
         calibrate([], np.eye(4))
+
+
+def test_several_feature_channels_score_the_mean_of_their_channels(frame: CalibrationFrame) -> None:
+    """An (N, 2) feature scores the mean of the two single-feature scores at every pose."""
+    from stages.calibration.calibrator import CalibrationProblem
+
+    replace = dataclasses.replace
+    rng_feature = compute_lidar_feature(np.asarray(frame.points_xyz), "range")
+    both = replace(frame, feature=np.stack([np.asarray(frame.feature), rng_feature], axis=1))
+    T_init = perturb(true_T_camera_lidar(), 2.0, 0.2, seed=4)
+    cfg = CalibrationConfig()
+    x = np.random.default_rng(0).uniform(-2, 2, (16, 6)) * [1, 1, 1, 0.1, 0.1, 0.1]
+    single = [CalibrationProblem([replace(frame, feature=f)], T_init, cfg).evaluate(x)
+              for f in (frame.feature, rng_feature)]
+    combined = CalibrationProblem([both], T_init, cfg).evaluate(x)
+    assert np.ptp(single[0] - single[1]) > 0.01  # the two channels disagree, so the mean is not trivial
+    np.testing.assert_allclose(combined, 0.5 * (single[0] + single[1]), atol=1e-9)
+
+
+def test_unknown_feature_in_a_combination_is_a_config_error() -> None:
+    from pipeline.config import CalibrationConfig as WorkflowCalibration
+    from stages.calibration.calibrator import feature_names
+
+    assert feature_names("range+normals") == ["range", "normals"]
+    with pytest.raises(ConfigError, match="lidar feature"):
+        feature_names("range+colour")
+    with pytest.raises(ConfigError, match=r"calibration\.feature"):
+        WorkflowCalibration(feature="range+range").validate()

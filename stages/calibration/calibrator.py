@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from pipeline.camera_model import CameraModel
+from pipeline.config import LIDAR_FEATURES
 from pipeline.errors import ConfigError, ProcessingError
 from pipeline.frames import CameraFrame, LidarFrame
 from pipeline.transforms import apply, rotation_error_deg, translation_error_m
@@ -65,7 +66,9 @@ class CalibrationFrame:
 
     Attributes:
         points_xyz: (N, 3) lidar points in the lidar frame at the scan stamp, metres.
-        feature: (N,) lidar feature in [0, 1] (``stages.lidar_features``); NaN points are dropped.
+        feature: (N,) lidar feature in [0, 1] (``stages.lidar_features``), or (N, C) for C features
+            (e.g. range and normals): each gets its own lidar gradients and the frame's score is the
+            mean of the C scores. Points with a NaN in any column are dropped.
         camera: intrinsics of the image.
         gradients: image gradients (gx, gy, magnitude (H, W)) after blur (``compute_image_gradients``).
         intensity: (H, W) equalised grey in [0, 1]; needed by the NMI metric only.
@@ -368,28 +371,31 @@ class CalibrationProblem:
         self.upper = np.asarray(centre) + np.asarray(half)
         self.frames = frames
         self.T_camera_camera0 = [np.asarray(f.T_camera_camera0, dtype=np.float64) for f in frames]
-        self.scorers: list[Scorer] = []
+        self.scorers: list[list[Scorer]] = []  # per frame, one scorer per feature channel
         self.points_used: list[int] = []
         for f, T_c_c0 in zip(frames, self.T_camera_camera0, strict=True):
-            scorer, n = self._prepare(f, T_c_c0 @ T0)
-            self.scorers.append(scorer)
+            scorers, n = self._prepare(f, T_c_c0 @ T0)
+            self.scorers.append(scorers)
             self.points_used.append(n)
         self.evaluations = 0
-        self.min_counts = np.full(len(frames), config.min_points, dtype=np.int64)
-        _, init_counts = self.frame_scores(np.zeros((1, self.dim)) + 0.5 * (self.lower + self.upper))
-        self.min_counts = np.maximum(config.min_points,
-                                     np.floor(config.min_overlap_fraction * init_counts[0])).astype(np.int64)
+        self.min_counts = [np.full(len(s), config.min_points, dtype=np.int64) for s in self.scorers]
+        centre = np.zeros((1, self.dim)) + 0.5 * (self.lower + self.upper)
+        init_counts = self._channel_counts(centre)
+        self.min_counts = [np.maximum(config.min_points, np.floor(config.min_overlap_fraction * c)).astype(np.int64)
+                           for c in init_counts]
 
-    def _prepare(self, f: CalibrationFrame, T_cam_lidar: Mat4) -> tuple[Scorer, int]:
+    def _prepare(self, f: CalibrationFrame, T_cam_lidar: Mat4) -> tuple[list[Scorer], int]:
+        """Scorers of one frame (one per feature channel; Levinson: one) and its largest point count."""
         cfg = self.config
         pts = np.asarray(f.points_xyz, dtype=np.float64)
-        feat = np.asarray(f.feature, dtype=np.float64).ravel()
-        if pts.ndim != 2 or pts.shape[1] != 3 or feat.shape[0] != pts.shape[0]:
+        feat = np.asarray(f.feature, dtype=np.float64)
+        feat = feat[:, None] if feat.ndim == 1 else feat
+        if pts.ndim != 2 or pts.shape[1] != 3 or feat.ndim != 2 or feat.shape[0] != pts.shape[0]:
             raise ProcessingError(
                 f"frame {f.label!r}: points {pts.shape} and feature {feat.shape} do not match")
         raw = pts
         pts = compensate_ego_motion(pts, f.T_lidar_motion, f.point_time_offsets_s, f.twist_lidar)
-        good = np.all(np.isfinite(pts), axis=1) & np.isfinite(feat)
+        good = np.all(np.isfinite(pts), axis=1) & np.all(np.isfinite(feat), axis=1)
         pts, feat, raw = pts[good], feat[good], raw[good]
         keep = _view_cull(apply(T_cam_lidar, pts), f.camera, np.radians(cfg.search_deg) * np.sqrt(3),
                           cfg.search_m * np.sqrt(3))
@@ -406,7 +412,27 @@ class CalibrationProblem:
         if cfg.metric == "nmi":
             if f.intensity is None:
                 raise ProcessingError(f"frame {f.label!r}: NMI needs the image intensity")
-            return NmiScorer(pts, feat, f.intensity, f.camera, f.mask, cfg.nmi_bins), pts.shape[0]
+            return [NmiScorer(pts, feat[:, c], f.intensity, f.camera, f.mask, cfg.nmi_bins)
+                    for c in range(feat.shape[1])], pts.shape[0]
+        if cfg.metric == "levinson":  # depth discontinuities: the feature does not enter
+            grads = compute_sphere_gradients(pts, feat[:, 0], T_cam_lidar, k=cfg.sphere_k,
+                                             normalise=cfg.normalise_gradients, fit=cfg.gradient_fit)
+            weight = depth_discontinuities(pts, grads.neighbours, cfg.levinson_min_jump_m)
+            sel = weight > 0
+            edges = levinson_edge_image(f.gradients.magnitude, cfg.levinson_blur_px)
+            return [LevinsonScorer(pts[sel], weight[sel], edges, f.camera, f.mask)], int(sel.sum())
+        scorers: list[Scorer] = []
+        counts: list[int] = []
+        for c in range(feat.shape[1]):
+            scorer, n = self._gom_scorer(f, raw, pts, feat[:, c], T_cam_lidar)
+            scorers.append(scorer)
+            counts.append(n)
+        return scorers, max(counts)
+
+    def _gom_scorer(self, f: CalibrationFrame, raw: NDArray[np.float64], pts: NDArray[np.float64],
+                    feat: NDArray[np.float64], T_cam_lidar: Mat4) -> tuple[Scorer, int]:
+        """GOM scorer of one feature channel: lidar gradients (paper 3.3) and the point selection."""
+        cfg = self.config
         if cfg.gradient_viewpoint == "lidar":
             grads = lidar_view_gradients(raw, pts, feat, T_cam_lidar,
                                          None if f.T_lidar_motion is None else f.T_lidar_motion[:3, :3],
@@ -414,11 +440,6 @@ class CalibrationProblem:
         else:
             grads = compute_sphere_gradients(pts, feat, T_cam_lidar, k=cfg.sphere_k,
                                              normalise=cfg.normalise_gradients, fit=cfg.gradient_fit)
-        if cfg.metric == "levinson":
-            weight = depth_discontinuities(pts, grads.neighbours, cfg.levinson_min_jump_m)
-            sel = weight > 0
-            edges = levinson_edge_image(f.gradients.magnitude, cfg.levinson_blur_px)
-            return LevinsonScorer(pts[sel], weight[sel], edges, f.camera, f.mask), int(sel.sum())
         magnitude = grads.magnitude if cfg.lidar_magnitude == "paper" else np.hypot(grads.gx, grads.gy)
         sel = magnitude > 0
         if cfg.keep_fraction < 1.0 and np.any(sel):
@@ -439,19 +460,31 @@ class CalibrationProblem:
         rv = Rotation.from_matrix(T_delta[:3, :3]).as_rotvec(degrees=True)
         return np.concatenate([rv, T_delta[:3, 3]])
 
-    def frame_scores(self, x: NDArray[np.floating]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
-        """Per-frame scores and projected-point counts (P, F) of parameters (P, D)."""
+    def _batches(self, x: NDArray[np.floating]) -> list[list[MetricBatch]]:
+        """Metric batches per frame and feature channel for parameters (P, D)."""
         x = np.atleast_2d(np.asarray(x, dtype=np.float64))
-        T_delta = delta_transforms(x)
-        T_c0 = T_delta @ self.T_init
+        T_c0 = delta_transforms(x) @ self.T_init
         focal = x[:, 6] if x.shape[1] > 6 else None
-        scores = np.zeros((x.shape[0], len(self.scorers)))
-        counts = np.zeros((x.shape[0], len(self.scorers)), dtype=np.int64)
-        for k, (scorer, T_c_c0) in enumerate(zip(self.scorers, self.T_camera_camera0, strict=True)):
-            batch = scorer.score(T_c_c0 @ T_c0, focal)
-            scores[:, k] = np.where(batch.counts >= self.min_counts[k], batch.scores, 0.0)
-            counts[:, k] = batch.counts
         self.evaluations += x.shape[0]
+        return [[scorer.score(T_c_c0 @ T_c0, focal) for scorer in scorers]
+                for scorers, T_c_c0 in zip(self.scorers, self.T_camera_camera0, strict=True)]
+
+    def _channel_counts(self, x: NDArray[np.floating]) -> list[NDArray[np.int64]]:
+        """Projected points per frame and channel of the first candidate of x."""
+        return [np.array([b.counts[0] for b in frame], dtype=np.int64) for frame in self._batches(x)]
+
+    def frame_scores(self, x: NDArray[np.floating]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+        """Per-frame scores (mean over feature channels; a channel projecting fewer points than its
+        minimum scores 0) and projected-point counts (largest over channels), each (P, F), of
+        parameters (P, D)."""
+        batches = self._batches(x)
+        n = np.atleast_2d(np.asarray(x)).shape[0]
+        scores = np.zeros((n, len(batches)))
+        counts = np.zeros((n, len(batches)), dtype=np.int64)
+        for k, frame in enumerate(batches):
+            for c, batch in enumerate(frame):
+                scores[:, k] += np.where(batch.counts >= self.min_counts[k][c], batch.scores, 0.0) / len(frame)
+                counts[:, k] = np.maximum(counts[:, k], batch.counts)
         return scores, counts
 
     def evaluate(self, x: NDArray[np.floating]) -> NDArray[np.float64]:
@@ -619,12 +652,27 @@ def log_range_feature(points_xyz: NDArray[np.floating]) -> NDArray[np.float64]:
     return np.asarray((lr - lo) / (hi - lo) if hi > lo else np.full(r.shape, 0.5))
 
 
+def feature_names(spec: str) -> list[str]:
+    """The lidar features of a spec: one name or several joined by ``+`` (``range+normals``).
+
+    Raises:
+        ConfigError: an unknown or repeated name.
+    """
+    names = [n.strip() for n in str(spec).split("+")]
+    bad = [n for n in names if n not in LIDAR_FEATURES]
+    if bad or len(set(names)) != len(names):
+        raise ConfigError(f"unknown or repeated lidar feature in {spec!r}; expected one or several of "
+                          f"{', '.join(LIDAR_FEATURES)} joined by '+'")
+    return names
+
+
 def build_frame(lidar: LidarFrame, camera: CameraFrame, feature: str = "range",
                 blur_sigma_px: float | None = None, T_camera_camera0: Mat4 | None = None,
                 T_lidar_motion: Mat4 | None = None) -> CalibrationFrame:
-    """A CalibrationFrame from decoded frames: lidar feature (``stages.lidar_features``: ``range``,
-    ``intensity``, ``normals``; or ``log_range``, see ``log_range_feature``), image gradients after a
-    Gaussian blur (``stages.image_gradients``) and the equalised grey for NMI.
+    """A CalibrationFrame from decoded frames: lidar feature(s) (``stages.lidar_features``: ``range``,
+    ``intensity``, ``normals``; or ``log_range``, see ``log_range_feature``; several joined by ``+``
+    give an (N, C) feature), image gradients after a Gaussian blur (``stages.image_gradients``) and
+    the equalised grey for NMI.
 
     Raises:
         ProcessingError: the camera frame has no CameraModel (no CameraInfo in the log).
@@ -637,12 +685,14 @@ def build_frame(lidar: LidarFrame, camera: CameraFrame, feature: str = "range",
     if camera.camera is None:
         raise ProcessingError(f"camera {camera.topic} has no CameraInfo: intrinsics are unknown")
     sigma = default_blur_sigma_px(camera.width) if blur_sigma_px is None else blur_sigma_px
-    values: NDArray[np.floating]
-    if feature == "log_range":
-        values = log_range_feature(lidar.points_xyz)
-    else:
-        values = compute_lidar_feature(lidar.points_xyz, feature,  # type: ignore[arg-type]
-                                       intensity=lidar.channel("intensity"))
+    columns: list[NDArray[np.floating]] = []
+    for name in feature_names(feature):
+        if name == "log_range":
+            columns.append(log_range_feature(lidar.points_xyz))
+        else:
+            columns.append(compute_lidar_feature(lidar.points_xyz, name,  # type: ignore[arg-type]
+                                                 intensity=lidar.channel("intensity")))
+    values = columns[0] if len(columns) == 1 else np.stack(columns, axis=1)
     grads = compute_image_gradients(camera.image, blur_sigma_px=sigma)
     grey = np.asarray(cv2.equalizeHist(to_grey_u8(camera.image)), dtype=np.float32) / 255.0
     return CalibrationFrame(
