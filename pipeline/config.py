@@ -93,6 +93,20 @@ class EngineConfig:
 LIDAR_FEATURES = ("intensity", "range", "normals", "log_range")
 
 
+def feature_names(spec: str) -> list[str]:
+    """The lidar features of a spec: one of ``LIDAR_FEATURES`` or several joined by ``+``
+    (``range+normals``).
+
+    Raises:
+        ConfigError: an unknown or repeated name.
+    """
+    names = [n.strip() for n in str(spec).split("+")]
+    if any(n not in LIDAR_FEATURES for n in names) or len(set(names)) != len(names):
+        raise ConfigError(f"bad value for calibration.feature: unknown or repeated lidar feature in {spec!r}; "
+                          f"expected one or several of {', '.join(LIDAR_FEATURES)} joined by '+'")
+    return names
+
+
 @dataclass
 class CalibrationConfig:
     """Targetless lidar-camera calibration (GOM paper).
@@ -145,9 +159,7 @@ class CalibrationConfig:
     gradient_fit: Literal["paper", "lsq"] = "paper"
 
     def validate(self) -> None:
-        names = self.feature.split("+")
-        _require(all(n in LIDAR_FEATURES for n in names) and len(set(names)) == len(names),
-                 "calibration.feature", f"must be one or several of {', '.join(LIDAR_FEATURES)} joined by '+'")
+        feature_names(self.feature)
         _require(self.frames >= 1, "calibration.frames", "must be >= 1")
         _require(self.particles >= 1, "calibration.particles", "must be >= 1")
         _require(self.iterations >= 1, "calibration.iterations", "must be >= 1")

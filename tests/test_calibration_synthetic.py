@@ -272,7 +272,7 @@ def test_several_feature_channels_score_the_mean_of_their_channels(frame: Calibr
 
 def test_unknown_feature_in_a_combination_is_a_config_error() -> None:
     from pipeline.config import CalibrationConfig as WorkflowCalibration
-    from stages.calibration.calibrator import feature_names
+    from pipeline.config import feature_names
 
     assert feature_names("range+normals") == ["range", "normals"]
     with pytest.raises(ConfigError, match="lidar feature"):

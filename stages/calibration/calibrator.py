@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from pipeline.camera_model import CameraModel
-from pipeline.config import LIDAR_FEATURES
+from pipeline.config import feature_names
 from pipeline.errors import ConfigError, ProcessingError
 from pipeline.frames import CameraFrame, LidarFrame
 from pipeline.transforms import apply, rotation_error_deg, translation_error_m
@@ -380,7 +380,6 @@ class CalibrationProblem:
             self.scorers.append(scorers)
             self.points_used.append(n)
         self.evaluations = 0
-        self.min_counts = [np.full(len(s), config.min_points, dtype=np.int64) for s in self.scorers]
         centre = np.zeros((1, self.dim)) + 0.5 * (self.lower + self.upper)
         init_counts = self._channel_counts(centre)
         self.min_counts = [np.maximum(config.min_points, np.floor(config.min_overlap_fraction * c)).astype(np.int64)
@@ -652,20 +651,6 @@ def log_range_feature(points_xyz: NDArray[np.floating]) -> NDArray[np.float64]:
         return np.full(r.shape, np.nan)
     lo, hi = float(lr[finite].min()), float(lr[finite].max())
     return np.asarray((lr - lo) / (hi - lo) if hi > lo else np.full(r.shape, 0.5))
-
-
-def feature_names(spec: str) -> list[str]:
-    """The lidar features of a spec: one name or several joined by ``+`` (``range+normals``).
-
-    Raises:
-        ConfigError: an unknown or repeated name.
-    """
-    names = [n.strip() for n in str(spec).split("+")]
-    bad = [n for n in names if n not in LIDAR_FEATURES]
-    if bad or len(set(names)) != len(names):
-        raise ConfigError(f"unknown or repeated lidar feature in {spec!r}; expected one or several of "
-                          f"{', '.join(LIDAR_FEATURES)} joined by '+'")
-    return names
 
 
 def build_frame(lidar: LidarFrame, camera: CameraFrame, feature: str = "range",
