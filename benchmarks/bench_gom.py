@@ -4,7 +4,8 @@ Prints (1) the time of one GOM evaluation per pose within a 200-pose batch for a
 against a 1242x375 image, (2) a table of rotation / translation error vs the ``.truth.json``
 reference and runtime for every available real log x {gom, nmi, levinson} with the workflow's
 defaults (``fleetcal calibrate``: range+normals, 3 seeded repeats), and (3) with
-``--seeds N`` the KITTI robustness study: starts 5 deg / 0.5 m off on random axes, search 10 deg / 1 m.
+``--seeds N`` the KITTI robustness study: starts 5 deg / 0.5 m off on random axes, search 10 deg / 1 m
+(the auto gradient viewpoint then takes the lidar's own sphere).
 
     .venv/bin/python benchmarks/bench_gom.py [--seeds 10] [--logs kitti pjlab nuscenes] [--skip-table]
 """

@@ -134,9 +134,12 @@ class CalibrationConfig:
         min_points: scans with fewer points are skipped.
         motion_compensation: move lidar points to the camera stamp with the log's /tf odometry.
         occlusion_filter: drop lidar points hidden from the camera at the initial guess (z-buffer).
-        gradient_viewpoint: where lidar gradients are taken: ``camera`` (paper: sphere at the camera)
-            or ``lidar`` (the lidar's own sphere, edge directions carried into the camera's view).
+        gradient_viewpoint: where lidar gradients are taken: ``camera`` (paper: sphere at the camera),
+            ``lidar`` (the lidar's own sphere, edge directions carried into the camera's view) or
+            ``auto`` (camera while ``search_m`` <= 0.5 m, lidar for wider boxes; see
+            ``stages.calibration.calibrator.CalibrationConfig``).
         gradient_fit: ``paper`` (Algorithm 1) or ``lsq`` (least-squares gradient over the neighbours).
+        gradient_neighbours: ``angle`` (paper) or ``sampling`` (neighbours across a sparse lidar's rings).
     """
 
     metric: Literal["gom", "nmi", "levinson"] = "gom"
@@ -155,8 +158,9 @@ class CalibrationConfig:
     min_points: int = 100
     motion_compensation: bool = True
     occlusion_filter: bool = False
-    gradient_viewpoint: Literal["camera", "lidar"] = "camera"
+    gradient_viewpoint: Literal["auto", "camera", "lidar"] = "auto"
     gradient_fit: Literal["paper", "lsq"] = "paper"
+    gradient_neighbours: Literal["angle", "sampling"] = "angle"
 
     def validate(self) -> None:
         feature_names(self.feature)

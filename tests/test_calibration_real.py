@@ -7,7 +7,7 @@ Each test skips with a reason when the data is absent. ``load_real_frames`` is a
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +23,7 @@ from readers.open import open_log
 from stages.calibration import CalibrationConfig, CalibrationFrame, calibrate
 from stages.calibration.calibrator import build_frame
 from tests.conftest import SHARED_DATA
+from tests.test_calibration_synthetic import perturb
 from workflows.calibrate import solver_config
 
 LOGS = SHARED_DATA / "logs"
@@ -99,6 +100,23 @@ def test_kitti_default_settings_from_log_tf() -> None:
     assert result.score > result.initial_score
     assert result.verdict == "recalibrated"
     assert result.runtime_s < 60
+
+
+@pytest.mark.slow
+def test_kitti_from_5deg_50cm_off_in_a_wide_box() -> None:
+    """``--initial`` 5 deg / 0.5 m off on a random axis, ``--search-deg 10 --search-m 1``: the box is
+    wider than 0.5 m, so the auto viewpoint takes lidar gradients on the lidar's own sphere (measured
+    for this seed 0.158 deg / 5.5 cm; the camera sphere at the start: 0.60 deg / 22 cm)."""
+    log_path("kitti_2011_09_26.mcap")
+    problem = load_real_frames("kitti_2011_09_26.mcap")
+    T_start = perturb(problem.T_true, 5.0, 0.5, seed=100)
+    assert errors(T_start, problem.T_true) == pytest.approx((5.0, 0.5), abs=1e-6)
+    cfg = replace(solver_config(Config()), search_deg=10.0, search_m=1.0, seed=0)
+    assert cfg.viewpoint == "lidar"
+    result = calibrate(problem.frames, T_start, cfg)
+    rot, trans = errors(result.T_camera_lidar, problem.T_true)
+    assert rot <= 0.3, f"rotation error {rot:.3f} deg"
+    assert trans <= 0.10, f"translation error {trans:.3f} m"
 
 
 def test_kitti_search_box_away_from_the_scan_is_a_clear_error() -> None:

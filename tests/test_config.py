@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import pytest
@@ -155,3 +155,21 @@ def test_new_fields_and_lists_convert_by_type(monkeypatch: pytest.MonkeyPatch) -
     assert isinstance(config, BigConfig)
     assert config.extra.names == ["x", "y"] and config.extra.weights == [1.0, 2.5] and config.extra.limit == 7
     assert tomllib.loads(to_toml(config))["extra"] == {"names": ["x", "y"], "weights": [1.0, 2.5], "limit": 7}
+
+
+def test_gradient_viewpoint_auto_follows_the_translation_box() -> None:
+    """``auto``: the paper's camera sphere while the initial translation is trusted to 0.5 m, the
+    lidar's own sphere for wider boxes; an explicit choice and the neighbour mode reach the solver."""
+    from workflows.calibrate import solver_config
+
+    config = Config()
+    assert config.calibration.gradient_viewpoint == "auto"
+    assert solver_config(config).viewpoint == "camera"
+    config.calibration.search_m = 1.0
+    assert solver_config(config).viewpoint == "lidar"
+    config.calibration.gradient_viewpoint = "camera"
+    config.calibration.gradient_neighbours = "sampling"
+    solver = solver_config(config)
+    assert solver.viewpoint == "camera" and solver.neighbours_by == "sampling"
+    with pytest.raises(ConfigError, match="neighbours_by"):
+        replace(solver, neighbours_by="rings").validate()

@@ -4,12 +4,14 @@ scan grid, and gradients taken at the lidar and carried into a displaced camera'
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from numpy.typing import NDArray
 
 from pipeline.transforms import apply, from_xyz_rpy
 from stages.calibration.sphere_gradients import (
     compute_sphere_gradients,
     lidar_view_gradients,
+    sampling_aspect,
     sphere_coordinates,
 )
 
@@ -94,3 +96,27 @@ def test_edge_direction_follows_the_parallax_of_a_displaced_camera() -> None:
     assert np.median(err_carried) < 2.5, f"carried gradients off by {np.median(err_carried):.2f} deg"
     # orientations left as the lidar sees them are off by the parallax
     assert np.median(err_lidar_only) > 3 * np.median(err_carried), np.median(err_lidar_only)
+
+
+def test_sampling_aspect_is_column_over_ring_spacing() -> None:
+    sparse = sphere_coordinates(_scan_grid(ring_step_deg=1.33, column_step_deg=0.33, range_m=10.0))
+    assert sampling_aspect(sparse) == pytest.approx(0.33 / 1.33, rel=0.05)
+    square = sphere_coordinates(_scan_grid(ring_step_deg=0.3, column_step_deg=0.3, range_m=10.0))
+    assert sampling_aspect(square) == pytest.approx(1.0, abs=0.02)
+
+
+def test_sampling_neighbours_see_an_edge_between_sparse_rings() -> None:
+    """A 32-beam-like scan (rings 1.33 deg, columns 0.33 deg apart) with a horizontal feature edge:
+    the 8 nearest neighbours by angle all lie on the point's own ring, so the edge's vertical gradient
+    is invisible; neighbours by sampling reach the rings above and below and find it."""
+    pts = _scan_grid(ring_step_deg=1.33, column_step_deg=0.33, range_m=10.0)
+    uv = sphere_coordinates(pts)
+    values = (uv[:, 1] > np.radians(90.0) + 1e-9).astype(np.float64)  # lower half bright
+    by_angle = compute_sphere_gradients(pts, values, np.eye(4), k=8, fit="lsq")
+    by_sampling = compute_sphere_gradients(pts, values, np.eye(4), k=8, fit="lsq", neighbours_by="sampling")
+    near_edge = np.abs(uv[:, 1] - np.radians(90.0)) < np.radians(1.5)
+    inner = near_edge & (np.abs(np.degrees(uv[:, 0])) < 12)
+    assert np.all(by_angle.magnitude[inner] == 0)  # own ring only: no change of value seen
+    assert np.all(by_sampling.magnitude[inner] > 0)
+    vertical = _doubled_angle_error_deg(by_sampling.orientation[inner], np.full(inner.sum(), np.pi / 2))
+    assert np.median(vertical) < 1.0, f"edge gradient {np.median(vertical):.2f} deg off vertical"

@@ -117,6 +117,7 @@ def solver_config(config: Config) -> SolverConfig:
         occlusion_filter=c.occlusion_filter,
         gradient_viewpoint=c.gradient_viewpoint,
         gradient_fit=c.gradient_fit,
+        neighbours_by=c.gradient_neighbours,
     )
 
 

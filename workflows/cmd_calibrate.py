@@ -38,9 +38,12 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
         action="store_true",
         help="affine map between two --camera images (GOM 3.2.2) -> camera_camera.parquet",
     )
-    p.add_argument("--gradient-viewpoint", choices=["camera", "lidar"],
-                   help="lidar gradients on the camera's sphere (paper) or the lidar's own, carried to the camera")
+    p.add_argument("--gradient-viewpoint", choices=["auto", "camera", "lidar"],
+                   help="lidar gradients on the camera's sphere (paper) or the lidar's own, carried to the camera; "
+                        "auto (default): camera up to --search-m 0.5, lidar beyond")
     p.add_argument("--gradient-fit", choices=["paper", "lsq"], help="lidar gradient: Algorithm 1 or least squares")
+    p.add_argument("--gradient-neighbours", choices=["angle", "sampling"],
+                   help="sphere neighbours: nearest by angle (paper) or across rings too (sparse lidars)")
     p.add_argument("--no-motion-compensation", action="store_true", help="ignore /tf odometry")
     p.add_argument("--estimate-focal", action="store_true", help="also estimate a focal length scale")
     p.add_argument("--particles", type=int, metavar="N", help="particle swarm size (default 200)")
@@ -64,6 +67,7 @@ def overrides(args: argparse.Namespace) -> dict[str, Any]:
         "calibration.repeats": args.repeats,
         "calibration.gradient_viewpoint": args.gradient_viewpoint,
         "calibration.gradient_fit": args.gradient_fit,
+        "calibration.gradient_neighbours": args.gradient_neighbours,
         "calibration.estimate_focal": True if args.estimate_focal else None,
         "calibration.motion_compensation": False if args.no_motion_compensation else None,
         "io.allow_truncated": True if args.allow_truncated else None,

@@ -6,16 +6,17 @@ and a translation in metres applied in the (reference) camera frame,
 ``T_camera0_lidar(x) = T_delta(x) @ T_camera0_lidar_init``; frame k sees
 ``T_camera_k_lidar = T_camera_k_camera0 @ T_camera0_lidar(x)`` (joint multi-camera).
 
-Known limit (measured on KITTI with the range feature, 2 frames, starts 5 deg / 0.5 m off, box 10 deg /
-1 m; 0 of 10 seeds within 0.3 deg / 10 cm, errors 1-15 deg; with range+normals and 3 repeats 4 seeds
-gave 0.14-0.75 deg / 15-25 cm, still 0 of 4 within the bound): the lidar
-gradients are linearised once, at the initial guess (paper 3.3), and the optimum of that fixed
-objective is not the truth far from it. Even linearised *at the truth*, the swarm finds poses 1.8 deg /
-0.68 m off scoring 0.742 vs 0.698 at the truth. The self-consistent score (gradients recomputed at
-each pose) does rank those failures below the truth (0.62-0.64 vs 0.70), but it is no cure either:
-searched over, it reaches 0.688 at 2.5 deg / 0.96 m (sideways shift vs yaw), and it ranks the log's
-tf (2 deg / 12 cm off) at 0.746, above the truth. Selecting repeats or candidates by it was therefore
-not adopted. Two frames do not pin the translation at the metre scale; see the issue notes.
+Large initial errors (KITTI, 2 frames, starts 5 deg / 0.5 m off on random axes, box 10 deg / 1 m):
+with the paper's camera-centred sphere, linearised once at the initial guess (paper 3.3), 0 of 10
+seeds came within 0.3 deg / 10 cm (errors 1-15 deg; range+normals, 3 repeats: 0.14-0.75 deg / 15-25
+cm): the optimum of that fixed objective is not the truth far from it, and re-linearising at the
+swarm's optimum does not cure it (two rounds: 0.60 deg / 22 cm -> 0.22 / 10.5 -> 0.38 / 12.5; 0.75 /
+25 -> 0.71 / 31 -> 0.67 / 31), nor does it linearised at the truth itself (box 2 deg / 0.2 m:
+0.18 deg / 21 cm). The lidar-viewpoint gradients do not depend on the initial translation, and with
+them most seeds land within the bound; ``gradient_viewpoint='auto'`` therefore picks them when the
+translation box is wider than 0.5 m. The remaining failures score as high as the truth (seed 3:
+1.17 deg / 99 cm at 0.7123 vs 0.71 near the truth): sideways shift against yaw, which two frames do
+not separate at the metre scale.
 """
 
 from __future__ import annotations
@@ -161,12 +162,24 @@ class CalibrationConfig:
         gradient_viewpoint: where the lidar gradients are computed. ``camera`` (paper 3.3): on a sphere
             centred on the camera at the initial guess. ``lidar``: on the lidar's own sphere (origin at
             capture, where neighbours never straddle a depth edge), the edge direction stepped along
-            the point's surface and carried into the camera view with parallax. Camera by default:
-            the lidar view met the simulated street target (intensity, 0.057 deg / 1.0 cm vs 0.249 /
-            1.0) but was worse on the real logs (3 repeats: KITTI from tf 0.37 deg / 5.4 cm vs 0.14 /
-            8.0; nuScenes joint 0.83 / 39 vs 0.37 / 22; PJLab rig1 5.5 / 46 vs 6.7 / 29).
+            the point's surface and carried into the camera view with parallax; it does not depend on
+            the initial translation. ``auto`` (default): ``camera`` while ``search_m`` is at most
+            ``auto_lidar_viewpoint_above_m``, ``lidar`` for wider boxes, i.e. when the initial
+            translation is not trusted. Evidence (range+normals, 3 repeats): from each log's tf (box
+            5 deg / 0.5 m) the camera view is as good or better (KITTI 0.133 deg / 7.2 cm vs 0.164 /
+            5.9; PJLab rig1 0.186 / 27 vs 0.81 / 39; nuScenes joint+ego 1.52 vs 6.7 deg (lsq fit with
+            ``neighbours_by='sampling'``: 0.53)); from KITTI starts 5 deg / 0.5 m off in a 10 deg / 1 m
+            box the camera view linearised at the start fails every seed (0 of 10 within 0.3 deg /
+            10 cm, see the module docstring) and the lidar view does not (``bench_gom.py --seeds``).
+            Simulated street, intensity: lidar view (lsq) 0.057 deg / 1.0 cm vs 0.249 / 1.0.
+        auto_lidar_viewpoint_above_m: the ``auto`` rule's threshold on ``search_m``.
         gradient_fit: ``paper`` (Algorithm 1, ``sum dv dx``) or ``lsq`` (least-squares gradient over the
             K neighbours; unbiased when rings are further apart than columns, see ``sphere_kernels``).
+        neighbours_by: ``angle`` (paper: K nearest on the sphere) or ``sampling`` (polar angle scaled by
+            the scan's column / ring spacing, ``sphere_gradients.sampling_aspect``, so that a sparse
+            lidar's neighbours include the rings above and below). Opt-in: on nuScenes (32 beams,
+            aspect 0.25) it helps (camera view 1.52 -> 0.71 deg; lidar view, lsq 2.83 -> 0.53), on
+            KITTI (64 beams, aspect 0.49, camera view) it hurts (0.133 deg / 7.2 cm -> 0.349 / 11.6).
     """
 
     metric: str = "gom"
@@ -205,8 +218,17 @@ class CalibrationConfig:
     occlusion_cell_px: int = 4
     occlusion_rel_tol: float = 0.1
     occlusion_abs_tol_m: float = 0.1
-    gradient_viewpoint: str = "camera"
+    gradient_viewpoint: str = "auto"
+    auto_lidar_viewpoint_above_m: float = 0.5
     gradient_fit: str = "paper"
+    neighbours_by: str = "angle"
+
+    @property
+    def viewpoint(self) -> str:
+        """The gradient viewpoint in force: ``gradient_viewpoint`` with ``auto`` resolved."""
+        if self.gradient_viewpoint != "auto":
+            return self.gradient_viewpoint
+        return "lidar" if self.search_m > self.auto_lidar_viewpoint_above_m else "camera"
 
     def validate(self) -> None:
         if self.metric not in METRICS:
@@ -225,8 +247,12 @@ class CalibrationConfig:
             raise ConfigError("focal_search must be in (0, 0.5)")
         if self.coarse_blur_factor < 1 or self.fine_search_deg <= 0 or self.fine_search_m <= 0:
             raise ConfigError("need coarse_blur_factor >= 1 and positive fine_search_deg / fine_search_m")
-        if self.gradient_viewpoint not in ("camera", "lidar") or self.gradient_fit not in ("paper", "lsq"):
-            raise ConfigError("gradient_viewpoint must be 'camera' or 'lidar' and gradient_fit 'paper' or 'lsq'")
+        if self.gradient_viewpoint not in ("auto", "camera", "lidar"):
+            raise ConfigError("gradient_viewpoint must be 'auto', 'camera' or 'lidar'")
+        if self.gradient_fit not in ("paper", "lsq"):
+            raise ConfigError("gradient_fit must be 'paper' or 'lsq'")
+        if self.neighbours_by not in ("angle", "sampling"):
+            raise ConfigError("neighbours_by must be 'angle' or 'sampling'")
         if self.occlusion_cell_px < 1 or self.occlusion_rel_tol < 0 or self.occlusion_abs_tol_m < 0:
             raise ConfigError("need occlusion_cell_px >= 1 and non-negative occlusion tolerances")
 
@@ -417,7 +443,8 @@ class CalibrationProblem:
                     for c in range(feat.shape[1])], pts.shape[0]
         if cfg.metric == "levinson":  # depth discontinuities: the feature does not enter
             grads = compute_sphere_gradients(pts, feat[:, 0], T_cam_lidar, k=cfg.sphere_k,
-                                             normalise=cfg.normalise_gradients, fit=cfg.gradient_fit)
+                                             normalise=cfg.normalise_gradients, fit=cfg.gradient_fit,
+                                             neighbours_by=cfg.neighbours_by)
             weight = depth_discontinuities(pts, grads.neighbours, cfg.levinson_min_jump_m)
             sel = weight > 0
             edges = levinson_edge_image(f.gradients.magnitude, cfg.levinson_blur_px)
@@ -434,13 +461,14 @@ class CalibrationProblem:
                     feat: NDArray[np.float64], T_cam_lidar: Mat4) -> tuple[Scorer, int]:
         """GOM scorer of one feature channel: lidar gradients (paper 3.3) and the point selection."""
         cfg = self.config
-        if cfg.gradient_viewpoint == "lidar":
+        if cfg.viewpoint == "lidar":
             grads = lidar_view_gradients(raw, pts, feat, T_cam_lidar,
                                          None if f.T_lidar_motion is None else f.T_lidar_motion[:3, :3],
-                                         k=cfg.sphere_k, fit=cfg.gradient_fit)
+                                         k=cfg.sphere_k, fit=cfg.gradient_fit, neighbours_by=cfg.neighbours_by)
         else:
             grads = compute_sphere_gradients(pts, feat, T_cam_lidar, k=cfg.sphere_k,
-                                             normalise=cfg.normalise_gradients, fit=cfg.gradient_fit)
+                                             normalise=cfg.normalise_gradients, fit=cfg.gradient_fit,
+                                             neighbours_by=cfg.neighbours_by)
         magnitude = grads.magnitude if cfg.lidar_magnitude == "paper" else np.hypot(grads.gx, grads.gy)
         sel = magnitude > 0
         if cfg.keep_fraction < 1.0 and np.any(sel):

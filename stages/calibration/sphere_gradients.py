@@ -53,12 +53,38 @@ def sphere_coordinates(points_cam: NDArray[np.floating]) -> NDArray[np.float64]:
     return np.ascontiguousarray(np.stack([azimuth, polar], axis=1))
 
 
-def sphere_neighbours(sphere_uv: NDArray[np.float64], k: int = 8) -> NDArray[np.int64]:
-    """(N, k) indices of each point's k nearest neighbours on the sphere (cKDTree, self excluded)."""
+def sampling_aspect(sphere_uv: NDArray[np.float64], n_probe: int = 4000, k_probe: int = 32) -> float:
+    """Ratio of the scan's column spacing to its ring spacing on the sphere, in (0, 1].
+
+    Column spacing is the median distance to the nearest neighbour (on a spinning lidar, the next
+    column of the same ring); ring spacing is the median over points of the smallest polar step to a
+    neighbour that lies more above / below than beside them. A 32-beam lidar has rings ~1.3 deg apart
+    and columns ~0.2-0.3 deg: its K nearest neighbours on the sphere are all on the point's own ring,
+    and the gradient across rings (horizontal edges) cannot be seen. 1.0 for isotropic sampling."""
+    n = sphere_uv.shape[0]
+    if n <= k_probe + 1:
+        return 1.0
+    probe = np.random.default_rng(0).choice(n, size=min(n_probe, n), replace=False)
+    dist, idx = cKDTree(sphere_uv).query(sphere_uv[probe], k=k_probe + 1, workers=-1)
+    offsets = sphere_uv[np.asarray(idx)[:, 1:]] - sphere_uv[probe][:, None, :]
+    column = float(np.median(np.asarray(dist)[:, 1]))
+    d_az, d_polar = np.abs(offsets[..., 0]), np.abs(offsets[..., 1])
+    vertical = np.where(d_polar > 2.0 * d_az, d_polar, np.inf).min(axis=1)
+    vertical = vertical[np.isfinite(vertical)]
+    if column <= 0 or vertical.size < probe.size // 4:
+        return 1.0
+    return float(np.clip(column / np.median(vertical), 0.05, 1.0))
+
+
+def sphere_neighbours(sphere_uv: NDArray[np.float64], k: int = 8, polar_scale: float = 1.0) -> NDArray[np.int64]:
+    """(N, k) indices of each point's k nearest neighbours on the sphere (cKDTree, self excluded), with
+    polar angles multiplied by ``polar_scale`` for the search (``sampling_aspect``: neighbours as in
+    the range image, from the rings above and below as well as the own ring)."""
     n = sphere_uv.shape[0]
     if n <= k:
         raise ProcessingError(f"{n} lidar points are too few for {k} sphere neighbours")
-    _, idx = cKDTree(sphere_uv).query(sphere_uv, k=k + 1, workers=-1)
+    search_uv = sphere_uv if polar_scale == 1.0 else sphere_uv * np.array([1.0, polar_scale])
+    _, idx = cKDTree(search_uv).query(search_uv, k=k + 1, workers=-1)
     idx = np.asarray(idx, dtype=np.int64)
     own = idx[:, 0] == np.arange(n)
     out = np.where(own[:, None], idx[:, 1:], idx[:, :k])
@@ -67,7 +93,8 @@ def sphere_neighbours(sphere_uv: NDArray[np.float64], k: int = 8) -> NDArray[np.
 
 def compute_sphere_gradients(points_xyz: NDArray[np.floating], values: NDArray[np.floating],
                              T_camera_lidar: NDArray[np.float64], k: int = 8,
-                             normalise: bool = False, fit: str = "paper") -> LidarGradients:
+                             normalise: bool = False, fit: str = "paper",
+                             neighbours_by: str = "angle") -> LidarGradients:
     """Gradients of a per-point lidar feature as seen from the camera at ``T_camera_lidar``.
 
     Args:
@@ -77,6 +104,8 @@ def compute_sphere_gradients(points_xyz: NDArray[np.floating], values: NDArray[n
         k: neighbours per point (the paper uses 8).
         normalise: use unit neighbour directions instead of raw angle differences (see kernel).
         fit: ``paper`` (Algorithm 1) or ``lsq`` (least-squares plane fit, ``sphere_gradient_lsq_kernel``).
+        neighbours_by: ``angle`` (paper: nearest on the sphere) or ``sampling`` (polar angle scaled by
+            ``sampling_aspect`` for the search, so sparse-ring lidars get neighbours across rings).
     """
     pts = np.asarray(points_xyz, dtype=np.float64)
     vals = np.ascontiguousarray(values, dtype=np.float64).ravel()
@@ -85,7 +114,8 @@ def compute_sphere_gradients(points_xyz: NDArray[np.floating], values: NDArray[n
     if not (np.all(np.isfinite(pts)) and np.all(np.isfinite(vals))):
         raise ProcessingError("lidar points or feature values contain NaN or infinity")
     sphere_uv = sphere_coordinates(apply(T_camera_lidar, pts))
-    neighbours = sphere_neighbours(sphere_uv, k)
+    scale = sampling_aspect(sphere_uv) if neighbours_by == "sampling" else 1.0
+    neighbours = sphere_neighbours(sphere_uv, k, scale)
     if fit == "lsq":
         gx, gy, mag = sphere_gradient_lsq_kernel(sphere_uv, vals, neighbours)
     else:
@@ -126,7 +156,7 @@ def _range_slope_along(sphere_uv: NDArray[np.float64], range_m: NDArray[np.float
 def lidar_view_gradients(raw_xyz: NDArray[np.floating], points_xyz: NDArray[np.floating],
                          values: NDArray[np.floating], T_camera_lidar: NDArray[np.float64],
                          R_motion: NDArray[np.float64] | None = None, k: int = 8,
-                         fit: str = "lsq", step_rad: float = 1e-3) -> LidarGradients:
+                         fit: str = "lsq", step_rad: float = 1e-3, neighbours_by: str = "angle") -> LidarGradients:
     """Lidar gradients taken where the scan was captured and carried into the camera's view.
 
     On the camera-centred sphere (paper 3.3) a camera displaced from the lidar sees foreground and
@@ -158,7 +188,7 @@ def lidar_view_gradients(raw_xyz: NDArray[np.floating], points_xyz: NDArray[np.f
     R = T[:3, :3]
     T_turn = np.eye(4)
     T_turn[:3, :3] = R
-    at_lidar = compute_sphere_gradients(raw, values, T_turn, k=k, fit=fit)
+    at_lidar = compute_sphere_gradients(raw, values, T_turn, k=k, fit=fit, neighbours_by=neighbours_by)
     norm = np.hypot(at_lidar.gx, at_lidar.gy)
     safe = np.where(norm > 0, norm, 1.0)
     edge_az, edge_polar = -at_lidar.gy / safe, at_lidar.gx / safe

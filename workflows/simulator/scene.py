@@ -195,6 +195,35 @@ class SceneBuilder:
         if bottom:
             self.quad(o, ay, ax, mat_a)
 
+    def facet(self, vertices: list[NDArray[np.float64]], mat: str) -> None:
+        """Convex planar polygon (vertices in order, world frame, m) of one solid material, as a fan."""
+        v = [np.asarray(p, dtype=np.float64) for p in vertices]
+        u = (v[1] - v[0]) / np.linalg.norm(v[1] - v[0])
+        n = np.cross(v[1] - v[0], v[2] - v[0])
+        w = np.cross(n, u)
+        w = w / np.linalg.norm(w)
+        seed = int(self.rng.integers(0, 2**31 - 1))
+        entry = (_MAT_INDEX[mat], _MAT_INDEX[mat], SOLID, 1.0, v[0], u, w, seed)
+        for a, b in itertools.pairwise(v[1:]):
+            self.tris.append(np.stack([v[0], a, b]))
+            self.attrs.append(entry)
+
+    def terrace(self, center: NDArray[np.float64] | list[float], top_size: tuple[float, float], height_m: float,
+                run_m: float, yaw_rad: float, mat: str, side_mat: str | None = None) -> None:
+        """Raised platform on the ground: flat top ``top_size`` (length along yaw, width, m) at
+        ``height_m``, four sides sloping down over ``run_m`` to z = 0. Its creases are edges of surface
+        orientation (sun shading in the image, normals in the lidar) with continuous range."""
+        c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+        ax, ay = np.array([c, s, 0.0]), np.array([-s, c, 0.0])
+        ctr = np.array([center[0], center[1], 0.0])
+        corners = [(-1, -1), (1, -1), (1, 1), (-1, 1)]
+        top = [ctr + i * ax * top_size[0] / 2 + j * ay * top_size[1] / 2 + [0, 0, height_m] for i, j in corners]
+        foot = [ctr + i * ax * (top_size[0] / 2 + run_m) + j * ay * (top_size[1] / 2 + run_m) for i, j in corners]
+        self.facet(top, mat)
+        for k in range(4):
+            m = (k + 1) % 4
+            self.facet([foot[k], foot[m], top[m], top[k]], side_mat or mat)
+
     def build(self, name: str, seed: int, route: RouteSpec, lidar_height_m: float) -> Scene:
         tris = np.ascontiguousarray(np.stack(self.tris))
         cross = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
@@ -595,4 +624,25 @@ def _open(rng: np.random.Generator, seed: int) -> Scene:
             0.4,
         )
     b.box([0.0, 0.0, 3.0], [0.2, 0.2, 6.0], 0.0, "metal")
+    _earthworks(b, rng, route)
     return b.build("open", seed, route, lidar_height_m=1.9)
+
+
+def _earthworks(b: SceneBuilder, rng: np.random.Generator, route: RouteSpec, count: int = 24) -> None:
+    """Grass terraces and concrete platforms along the route (their feet 3-15 m from it): creases of
+    surface orientation with continuous range, so the open yard has shape that only normals (and
+    sun shading in the image) see."""
+    placed = 0
+    while placed < count:
+        c = rng.uniform(-58, 58, size=2)
+        length, width = float(rng.uniform(6, 18)), float(rng.uniform(4, 10))
+        run = float(rng.uniform(1.5, 4.0))
+        reach = 0.5 * np.hypot(length, width) + run + 3.0
+        # distance from the centre to the route (|signed distance| to its rounded rectangle)
+        q = np.abs(c) - [route.half_x_m - route.corner_radius_m, route.half_y_m - route.corner_radius_m]
+        d = abs(float(np.hypot(*np.maximum(q, 0.0))) + min(float(q.max()), 0.0) - route.corner_radius_m)
+        if not reach <= d <= reach + 12.0:
+            continue
+        top, side = [("grass", "concrete"), ("gravel", "concrete_dark"), ("grass", "dirt")][int(rng.integers(0, 3))]
+        b.terrace(c, (length, width), float(rng.uniform(0.5, 1.4)), run, float(rng.uniform(0, np.pi)), top, side)
+        placed += 1
