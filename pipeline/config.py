@@ -138,7 +138,8 @@ class CalibrationConfig:
             ``lidar`` (the lidar's own sphere, edge directions carried into the camera's view) or
             ``auto`` (camera while ``search_m`` <= 0.5 m, lidar for wider boxes; see
             ``stages.calibration.calibrator.CalibrationConfig``).
-        gradient_fit: ``paper`` (Algorithm 1) or ``lsq`` (least-squares gradient over the neighbours).
+        gradient_fit: ``paper`` (Algorithm 1), ``lsq`` (least-squares gradient over the neighbours) or
+            ``auto`` (lsq on the lidar's sphere, paper on the camera's).
         gradient_neighbours: ``angle`` (paper) or ``sampling`` (neighbours across a sparse lidar's rings).
     """
 
@@ -159,7 +160,7 @@ class CalibrationConfig:
     motion_compensation: bool = True
     occlusion_filter: bool = False
     gradient_viewpoint: Literal["auto", "camera", "lidar"] = "auto"
-    gradient_fit: Literal["paper", "lsq"] = "paper"
+    gradient_fit: Literal["auto", "paper", "lsq"] = "auto"
     gradient_neighbours: Literal["angle", "sampling"] = "angle"
 
     def validate(self) -> None:

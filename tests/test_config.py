@@ -164,12 +164,12 @@ def test_gradient_viewpoint_auto_follows_the_translation_box() -> None:
 
     config = Config()
     assert config.calibration.gradient_viewpoint == "auto"
-    assert solver_config(config).viewpoint == "camera"
+    assert (solver_config(config).viewpoint, solver_config(config).fit) == ("camera", "paper")
     config.calibration.search_m = 1.0
-    assert solver_config(config).viewpoint == "lidar"
+    assert (solver_config(config).viewpoint, solver_config(config).fit) == ("lidar", "lsq")
     config.calibration.gradient_viewpoint = "camera"
     config.calibration.gradient_neighbours = "sampling"
     solver = solver_config(config)
-    assert solver.viewpoint == "camera" and solver.neighbours_by == "sampling"
+    assert (solver.viewpoint, solver.fit, solver.neighbours_by) == ("camera", "paper", "sampling")
     with pytest.raises(ConfigError, match="neighbours_by"):
         replace(solver, neighbours_by="rings").validate()

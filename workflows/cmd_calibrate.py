@@ -41,7 +41,8 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--gradient-viewpoint", choices=["auto", "camera", "lidar"],
                    help="lidar gradients on the camera's sphere (paper) or the lidar's own, carried to the camera; "
                         "auto (default): camera up to --search-m 0.5, lidar beyond")
-    p.add_argument("--gradient-fit", choices=["paper", "lsq"], help="lidar gradient: Algorithm 1 or least squares")
+    p.add_argument("--gradient-fit", choices=["auto", "paper", "lsq"],
+                   help="lidar gradient: Algorithm 1 or least squares; auto (default): lsq with the lidar viewpoint")
     p.add_argument("--gradient-neighbours", choices=["angle", "sampling"],
                    help="sphere neighbours: nearest by angle (paper) or across rings too (sparse lidars)")
     p.add_argument("--no-motion-compensation", action="store_true", help="ignore /tf odometry")
