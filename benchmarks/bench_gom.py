@@ -8,6 +8,7 @@ defaults (``fleetcal calibrate``: range+normals, 3 seeded repeats), and (3) with
 (the auto gradient viewpoint then takes the lidar's own sphere).
 
     .venv/bin/python benchmarks/bench_gom.py [--seeds 10] [--logs kitti pjlab nuscenes] [--skip-table]
+        [--sim [sim-street sim-open-normals ...]]   (simulated logs with exact truth; alone: all)
 """
 
 from __future__ import annotations
@@ -91,6 +92,39 @@ def table(names: list[str], metrics: list[str]) -> None:
                   flush=True)
 
 
+SIM_CASES = {  # name: (scene, feature, search_deg, search_m); the logs' tf is 5 deg / 0.5 m off
+    "sim-street": ("street", "intensity", 10.0, 1.0),
+    "sim-street-box5": ("street", "intensity", 5.0, 0.5),
+    "sim-open-intensity": ("open", "intensity", 5.0, 0.5),
+    "sim-open-range": ("open", "range", 5.0, 0.5),
+    "sim-open-normals": ("open", "normals", 5.0, 0.5),
+}
+
+
+def sim_table(names: list[str], metrics: list[str]) -> None:
+    """Simulated logs (10 frames, 64 beams x 512 columns, 640x360), exact truth."""
+    import tempfile
+
+    from pipeline.transforms import rotation_error_deg, translation_error_m
+    from stages.calibration import CalibrationConfig
+    from tests.test_calibration_sim import simulated_frames
+
+    print(f"\n{'simulated':18s} {'metric':9s} {'rot_deg':>8s} {'trans_m':>8s} {'score':>8s} {'init':>8s} "
+          f"{'runtime_s':>9s} {'box':>9s} viewpoint")
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in names:
+            scene, feature, deg, metres = SIM_CASES[name]
+            frames, T_init, T_true = simulated_frames(Path(tmp), scene, feature, 10)
+            for metric in metrics:
+                cfg = CalibrationConfig(metric=metric, search_deg=deg, search_m=metres, repeats=3)
+                result = calibrate(frames, T_init, cfg)
+                rot = rotation_error_deg(result.T_camera_lidar, T_true)
+                trans = translation_error_m(result.T_camera_lidar, T_true)
+                print(f"{name:18s} {metric:9s} {rot:8.3f} {trans:8.3f} {result.score:8.4f} "
+                      f"{result.initial_score:8.4f} {result.runtime_s:9.1f} {deg:4.0f}/{metres:.1f}m "
+                      f"{cfg.viewpoint}", flush=True)
+
+
 def seeds_study(n: int) -> None:
     log = "kitti_2011_09_26.mcap"
     if not (LOGS / log).exists():
@@ -118,10 +152,14 @@ def main() -> None:
     parser.add_argument("--metrics", nargs="*", default=["gom", "nmi", "levinson"])
     parser.add_argument("--seeds", type=int, default=0, help="KITTI offset study with this many seeds")
     parser.add_argument("--skip-table", action="store_true")
+    parser.add_argument("--sim", nargs="*", default=[], choices=list(SIM_CASES),
+                        help="simulated cases to add (give the flag alone for all)")
     args = parser.parse_args()
     bench_kernel()
     if not args.skip_table:
         table(args.logs, args.metrics)
+    if args.sim is not None and "--sim" in sys.argv:
+        sim_table(args.sim or list(SIM_CASES), args.metrics)
     if args.seeds:
         seeds_study(args.seeds)
 

@@ -115,11 +115,12 @@ class CalibrationConfig:
         metric: alignment metric.
         feature: lidar per-point feature (GOM section 3.1), one of ``LIDAR_FEATURES`` or several
             joined by ``+`` (``range+normals``: each feature gets its own lidar gradients and the
-            frame's score is their mean). Default ``range+normals`` by evidence over the real logs and
-            the simulator (3 repeats, from the logs' tf; range alone in brackets): KITTI 0.133 deg /
-            7.2 cm (0.142 / 8.0), PJLab rig1 0.186 / 27 (6.69 / 29), simulated street 640x360 0.545 / 16
-            (3.93 / 30); worse on nuScenes' 32-beam lidar, where normals are noisy: joint 1.52 / 26
-            (0.37 / 22). Runtime about 2x that of one feature.
+            frame's score is their mean). Default ``range+normals``, chosen with the paper's camera
+            sphere by evidence over the real logs and the simulator (3 repeats, from the logs' tf;
+            range alone in brackets): KITTI 0.133 deg / 7.2 cm (0.142 / 8.0), PJLab rig1 0.186 / 27
+            (6.69 / 29), simulated street 640x360 0.545 / 16 (3.93 / 30), nuScenes joint 1.52 / 26
+            (0.37 / 22); with the lidar viewpoint (now the default) nuScenes joint 0.53 deg (range
+            0.51). Runtime about 2x that of one feature.
         frames: lidar/camera pairs used.
         particles: particle swarm size.
         iterations: particle swarm iterations.
@@ -134,13 +135,14 @@ class CalibrationConfig:
         min_points: scans with fewer points are skipped.
         motion_compensation: move lidar points to the camera stamp with the log's /tf odometry.
         occlusion_filter: drop lidar points hidden from the camera at the initial guess (z-buffer).
-        gradient_viewpoint: where lidar gradients are taken: ``camera`` (paper: sphere at the camera),
-            ``lidar`` (the lidar's own sphere, edge directions carried into the camera's view) or
-            ``auto`` (camera while ``search_m`` <= 0.5 m, lidar for wider boxes; see
-            ``stages.calibration.calibrator.CalibrationConfig``).
+        gradient_viewpoint: where lidar gradients are taken: ``camera`` (paper: sphere at the camera at
+            the initial guess), ``lidar`` (the lidar's own sphere, edge directions carried into the
+            camera's view) or ``auto`` (default: camera while ``search_m`` <= 0.5 m, lidar for wider
+            boxes); evidence in ``stages.calibration.calibrator.CalibrationConfig``.
         gradient_fit: ``paper`` (Algorithm 1), ``lsq`` (least-squares gradient over the neighbours) or
             ``auto`` (lsq on the lidar's sphere, paper on the camera's).
-        gradient_neighbours: ``angle`` (paper) or ``sampling`` (neighbours across a sparse lidar's rings).
+        gradient_neighbours: ``angle`` (paper), ``sampling`` (neighbours across a sparse lidar's rings) or
+            ``auto`` (sampling on the lidar's sphere, angle on the camera's).
     """
 
     metric: Literal["gom", "nmi", "levinson"] = "gom"
@@ -161,7 +163,7 @@ class CalibrationConfig:
     occlusion_filter: bool = False
     gradient_viewpoint: Literal["auto", "camera", "lidar"] = "auto"
     gradient_fit: Literal["auto", "paper", "lsq"] = "auto"
-    gradient_neighbours: Literal["angle", "sampling"] = "angle"
+    gradient_neighbours: Literal["auto", "angle", "sampling"] = "auto"
 
     def validate(self) -> None:
         feature_names(self.feature)

@@ -157,19 +157,24 @@ def test_new_fields_and_lists_convert_by_type(monkeypatch: pytest.MonkeyPatch) -
     assert tomllib.loads(to_toml(config))["extra"] == {"names": ["x", "y"], "weights": [1.0, 2.5], "limit": 7}
 
 
-def test_gradient_viewpoint_auto_follows_the_translation_box() -> None:
-    """``auto``: the paper's camera sphere while the initial translation is trusted to 0.5 m, the
-    lidar's own sphere for wider boxes; an explicit choice and the neighbour mode reach the solver."""
+def test_gradient_settings_follow_the_viewpoint() -> None:
+    """``auto``: the paper's camera sphere (Algorithm 1, nearest-by-angle neighbours) while the initial
+    translation is trusted to 0.5 m, the lidar's own sphere (least squares, neighbours across rings)
+    for wider boxes; explicit choices win."""
     from workflows.calibrate import solver_config
 
     config = Config()
     assert config.calibration.gradient_viewpoint == "auto"
-    assert (solver_config(config).viewpoint, solver_config(config).fit) == ("camera", "paper")
+    solver = solver_config(config)
+    assert (solver.viewpoint, solver.fit, solver.neighbours_on("camera")) == ("camera", "paper", "angle")
     config.calibration.search_m = 1.0
-    assert (solver_config(config).viewpoint, solver_config(config).fit) == ("lidar", "lsq")
+    solver = solver_config(config)
+    assert (solver.viewpoint, solver.fit, solver.neighbours_on("lidar")) == ("lidar", "lsq", "sampling")
+    assert solver.neighbours_on("camera") == "angle"  # Levinson's depth jumps stay on the camera sphere
     config.calibration.gradient_viewpoint = "camera"
     config.calibration.gradient_neighbours = "sampling"
+    config.calibration.gradient_fit = "lsq"
     solver = solver_config(config)
-    assert (solver.viewpoint, solver.fit, solver.neighbours_by) == ("camera", "paper", "sampling")
+    assert (solver.viewpoint, solver.fit, solver.neighbours_on("camera")) == ("camera", "lsq", "sampling")
     with pytest.raises(ConfigError, match="neighbours_by"):
         replace(solver, neighbours_by="rings").validate()

@@ -103,6 +103,8 @@ def test_sampling_aspect_is_column_over_ring_spacing() -> None:
     assert sampling_aspect(sparse) == pytest.approx(0.33 / 1.33, rel=0.05)
     square = sphere_coordinates(_scan_grid(ring_step_deg=0.3, column_step_deg=0.3, range_m=10.0))
     assert sampling_aspect(square) == pytest.approx(1.0, abs=0.02)
+    dense_rings = sphere_coordinates(_scan_grid(ring_step_deg=0.42, column_step_deg=0.7, range_m=10.0))
+    assert sampling_aspect(dense_rings) == 1.0  # rings denser than columns: left alone
 
 
 def test_sampling_neighbours_see_an_edge_between_sparse_rings() -> None:

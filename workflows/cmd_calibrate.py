@@ -39,12 +39,13 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
         help="affine map between two --camera images (GOM 3.2.2) -> camera_camera.parquet",
     )
     p.add_argument("--gradient-viewpoint", choices=["auto", "camera", "lidar"],
-                   help="lidar gradients on the camera's sphere (paper) or the lidar's own, carried to the camera; "
-                        "auto (default): camera up to --search-m 0.5, lidar beyond")
+                   help="lidar gradients on the camera's sphere at the initial guess (paper) or on the lidar's own, "
+                        "carried to the camera; auto (default): camera up to --search-m 0.5, lidar beyond")
     p.add_argument("--gradient-fit", choices=["auto", "paper", "lsq"],
                    help="lidar gradient: Algorithm 1 or least squares; auto (default): lsq with the lidar viewpoint")
-    p.add_argument("--gradient-neighbours", choices=["angle", "sampling"],
-                   help="sphere neighbours: nearest by angle (paper) or across rings too (sparse lidars)")
+    p.add_argument("--gradient-neighbours", choices=["auto", "angle", "sampling"],
+                   help="sphere neighbours: nearest by angle (paper) or across rings too; auto (default): "
+                        "across rings with the lidar viewpoint")
     p.add_argument("--no-motion-compensation", action="store_true", help="ignore /tf odometry")
     p.add_argument("--estimate-focal", action="store_true", help="also estimate a focal length scale")
     p.add_argument("--particles", type=int, metavar="N", help="particle swarm size (default 200)")

@@ -11,12 +11,11 @@ with the paper's camera-centred sphere, linearised once at the initial guess (pa
 seeds came within 0.3 deg / 10 cm (errors 1-15 deg; range+normals, 3 repeats: 0.14-0.75 deg / 15-25
 cm): the optimum of that fixed objective is not the truth far from it, and re-linearising at the
 swarm's optimum does not cure it (two rounds: 0.60 deg / 22 cm -> 0.22 / 10.5 -> 0.38 / 12.5; 0.75 /
-25 -> 0.71 / 31 -> 0.67 / 31), nor does it linearised at the truth itself (box 2 deg / 0.2 m:
-0.18 deg / 21 cm). The lidar-viewpoint gradients do not depend on the initial translation, and with
-them most seeds land within the bound; ``gradient_viewpoint='auto'`` therefore picks them when the
-translation box is wider than 0.5 m. The remaining failures score as high as the truth (seed 3:
-1.17 deg / 99 cm at 0.7123 vs 0.71 near the truth): sideways shift against yaw, which two frames do
-not separate at the metre scale.
+25 -> 0.71 / 31 -> 0.67 / 31), nor does linearising at the truth itself (box 2 deg / 0.2 m:
+0.18 deg / 21 cm). Lidar gradients taken on the lidar's own sphere do not depend on the initial
+translation; with the least-squares fit and neighbours across rings all 10 seeds land within the
+bound; ``gradient_viewpoint='auto'`` takes them whenever the translation box is wider than 0.5 m
+(see ``CalibrationConfig.gradient_viewpoint``).
 """
 
 from __future__ import annotations
@@ -161,30 +160,33 @@ class CalibrationConfig:
             depth tolerances (fraction, metres).
         gradient_viewpoint: where the lidar gradients are computed. ``camera`` (paper 3.3): on a sphere
             centred on the camera at the initial guess. ``lidar``: on the lidar's own sphere (origin at
-            capture, where neighbours never straddle a depth edge), the edge direction stepped along
-            the point's surface and carried into the camera view with parallax; it does not depend on
-            the initial translation. ``auto`` (default): ``camera`` while ``search_m`` is at most
-            ``auto_lidar_viewpoint_above_m``, ``lidar`` for wider boxes, i.e. when the initial
-            translation is not trusted. Evidence (range+normals, 3 repeats): from each log's tf (box
-            5 deg / 0.5 m) the camera view is as good or better (KITTI 0.133 deg / 7.2 cm vs 0.164 /
-            5.9; PJLab rig1 0.186 / 27 vs 0.81 / 39; nuScenes joint+ego 1.52 vs 6.7 deg (lsq fit with
-            ``neighbours_by='sampling'``: 0.53)); from KITTI starts 5 deg / 0.5 m off in a 10 deg / 1 m
-            box the camera view linearised at the start fails every seed (0 of 10 within 0.3 deg /
-            10 cm, see the module docstring) and the lidar view does not (``bench_gom.py --seeds``).
-            Simulated street, intensity: lidar view (lsq) 0.057 deg / 1.0 cm vs 0.249 / 1.0.
+            capture, where neighbours never straddle a depth edge and rings / columns are exact), the
+            edge direction stepped along the point's surface and carried into the camera view with
+            parallax; it does not depend on the initial translation. ``auto`` (default): ``camera``
+            while ``search_m`` <= ``auto_lidar_viewpoint_above_m`` (the initial translation is trusted,
+            e.g. a drifted factory calibration), ``lidar`` for wider boxes. Evidence (range+normals, 3
+            repeats, lidar view with the auto fit and neighbours vs camera view) from each log's tf,
+            box 5 deg / 0.5 m: KITTI 0.189 deg / 3.7 cm vs 0.133 / 7.2; PJLab rig1 0.85 / 45 vs 0.186 /
+            27; nuScenes joint+ego 0.53 deg vs 1.52 (range: 0.51 vs 0.37); simulated street (intensity)
+            0.046 / 0.8 vs 0.249 / 1.0; simulated open yard (intensity) 3.71 / 36 vs 0.132 / 1.5. From
+            KITTI starts 5 deg / 0.5 m off, box 10 deg / 1 m: 10 of 10 seeds within 0.3 deg / 10 cm
+            (0.12-0.18 deg / 3-6 cm) vs 0 of 10 (``bench_gom.py --seeds 10``). Neither view wins
+            everywhere; the camera view is never far off from a close start, the lidar view is the one
+            that survives a far start.
         auto_lidar_viewpoint_above_m: the ``auto`` rule's threshold on ``search_m``.
         gradient_fit: ``paper`` (Algorithm 1, ``sum dv dx``) or ``lsq`` (least-squares gradient over the
             K neighbours; unbiased when rings are further apart than columns, see ``sphere_kernels``), or
-            ``auto`` (default): ``lsq`` on the lidar's own sphere, where the ring / column anisotropy is
-            exact, ``paper`` on the camera's. Lidar view, lsq vs paper: simulated street (intensity, box
-            10 deg / 1 m) 0.060 deg / 1.0 cm vs 0.123 / 0.4; KITTI from 5 deg / 0.5 m seeds 3, 7, 8
-            0.28 / 7.2, 0.20 / 5.4, 2.05 / 67 vs 1.17 / 99, 0.54 / 23, 0.49 / 37; nuScenes joint 2.83 vs
-            6.67 deg.
-        neighbours_by: ``angle`` (paper: K nearest on the sphere) or ``sampling`` (polar angle scaled by
+            ``auto`` (default): ``lsq`` with the lidar viewpoint, ``paper`` with the camera's. Lidar
+            view (angle neighbours), lsq vs paper: simulated street (intensity, box 10 deg / 1 m) 0.060
+            deg / 1.0 cm vs 0.123 / 0.4; KITTI seeds 3, 7, 8 from 5 deg / 0.5 m 0.28 / 7.2, 0.20 / 5.4,
+            2.05 / 67 vs 1.17 / 99, 0.54 / 23, 0.49 / 37 (8 vs 6 of 10 seeds); nuScenes 2.83 vs 6.67 deg.
+        neighbours_by: ``angle`` (paper: K nearest on the sphere), ``sampling`` (polar angle scaled by
             the scan's column / ring spacing, ``sphere_gradients.sampling_aspect``, so that a sparse
-            lidar's neighbours include the rings above and below). Opt-in: on nuScenes (32 beams,
-            aspect 0.25) it helps (camera view 1.52 -> 0.71 deg; lidar view, lsq 2.83 -> 0.53), on
-            KITTI (64 beams, aspect 0.49, camera view) it hurts (0.133 deg / 7.2 cm -> 0.349 / 11.6).
+            lidar's neighbours include the rings above and below) or ``auto`` (default): ``sampling``
+            on the lidar's own sphere, ``angle`` on the camera's (and for Levinson's depth jumps).
+            Lidar view, lsq: KITTI (aspect 0.49) from 5 deg / 0.5 m 10 of 10 seeds vs 8 of 10;
+            nuScenes (32 beams, aspect 0.25) 0.53 vs 2.83 deg. On the camera's sphere it hurt KITTI
+            (0.133 deg / 7.2 cm -> 0.349 / 11.6) and helped nuScenes (1.52 -> 0.71 deg).
     """
 
     metric: str = "gom"
@@ -226,14 +228,21 @@ class CalibrationConfig:
     gradient_viewpoint: str = "auto"
     auto_lidar_viewpoint_above_m: float = 0.5
     gradient_fit: str = "auto"
-    neighbours_by: str = "angle"
+    neighbours_by: str = "auto"
 
     @property
     def viewpoint(self) -> str:
-        """The gradient viewpoint in force: ``gradient_viewpoint`` with ``auto`` resolved."""
+        """The gradient viewpoint in force: ``gradient_viewpoint`` with ``auto`` resolved by the box."""
         if self.gradient_viewpoint != "auto":
             return self.gradient_viewpoint
         return "lidar" if self.search_m > self.auto_lidar_viewpoint_above_m else "camera"
+
+    def neighbours_on(self, sphere: str) -> str:
+        """The sphere-neighbour rule in force on the ``camera`` or ``lidar`` sphere (``auto``: sampling
+        on the lidar's own sphere, where rings and columns are exact, the paper's angle otherwise)."""
+        if self.neighbours_by != "auto":
+            return self.neighbours_by
+        return "sampling" if sphere == "lidar" else "angle"
 
     @property
     def fit(self) -> str:
@@ -263,8 +272,8 @@ class CalibrationConfig:
             raise ConfigError("gradient_viewpoint must be 'auto', 'camera' or 'lidar'")
         if self.gradient_fit not in ("auto", "paper", "lsq"):
             raise ConfigError("gradient_fit must be 'auto', 'paper' or 'lsq'")
-        if self.neighbours_by not in ("angle", "sampling"):
-            raise ConfigError("neighbours_by must be 'angle' or 'sampling'")
+        if self.neighbours_by not in ("auto", "angle", "sampling"):
+            raise ConfigError("neighbours_by must be 'auto', 'angle' or 'sampling'")
         if self.occlusion_cell_px < 1 or self.occlusion_rel_tol < 0 or self.occlusion_abs_tol_m < 0:
             raise ConfigError("need occlusion_cell_px >= 1 and non-negative occlusion tolerances")
 
@@ -455,8 +464,7 @@ class CalibrationProblem:
                     for c in range(feat.shape[1])], pts.shape[0]
         if cfg.metric == "levinson":  # depth discontinuities: the feature does not enter
             grads = compute_sphere_gradients(pts, feat[:, 0], T_cam_lidar, k=cfg.sphere_k,
-                                             normalise=cfg.normalise_gradients, fit=cfg.fit,
-                                             neighbours_by=cfg.neighbours_by)
+                                             neighbours_by=cfg.neighbours_on("camera"))
             weight = depth_discontinuities(pts, grads.neighbours, cfg.levinson_min_jump_m)
             sel = weight > 0
             edges = levinson_edge_image(f.gradients.magnitude, cfg.levinson_blur_px)
@@ -476,11 +484,11 @@ class CalibrationProblem:
         if cfg.viewpoint == "lidar":
             grads = lidar_view_gradients(raw, pts, feat, T_cam_lidar,
                                          None if f.T_lidar_motion is None else f.T_lidar_motion[:3, :3],
-                                         k=cfg.sphere_k, fit=cfg.fit, neighbours_by=cfg.neighbours_by)
+                                         k=cfg.sphere_k, fit=cfg.fit, neighbours_by=cfg.neighbours_on("lidar"))
         else:
             grads = compute_sphere_gradients(pts, feat, T_cam_lidar, k=cfg.sphere_k,
                                              normalise=cfg.normalise_gradients, fit=cfg.fit,
-                                             neighbours_by=cfg.neighbours_by)
+                                             neighbours_by=cfg.neighbours_on("camera"))
         magnitude = grads.magnitude if cfg.lidar_magnitude == "paper" else np.hypot(grads.gx, grads.gy)
         sel = magnitude > 0
         if cfg.keep_fraction < 1.0 and np.any(sel):
