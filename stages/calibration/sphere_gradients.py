@@ -54,28 +54,29 @@ def sphere_coordinates(points_cam: NDArray[np.floating]) -> NDArray[np.float64]:
 
 
 def sampling_aspect(sphere_uv: NDArray[np.float64], n_probe: int = 4000, k_probe: int = 32) -> float:
-    """Ratio of the scan's column spacing to its ring spacing on the sphere, clipped to [0.05, 1].
+    """Ratio of the scan's column spacing to its ring spacing on the sphere, in (0, 1].
 
-    Column spacing is the median over points of the smallest azimuth step to a neighbour that lies
-    more beside than above / below them; ring spacing the same for polar steps to neighbours more above
-    / below than beside. A 32-beam lidar has rings ~1.3 deg apart and columns ~0.2-0.3 deg (0.25): its K
-    nearest neighbours on the sphere all lie on the point's own ring, and the gradient across rings
-    (horizontal edges) cannot be seen. Rings denser than columns already give two-dimensional
-    neighbourhoods at K = 8 and are left alone (stretching them cost the simulated street, 0.42 deg rings
-    x 0.70 deg columns, 0.06 -> 6.4 deg). 1.0 for isotropic sampling or when a spacing is not found."""
+    Column spacing is the median distance to the nearest neighbour (on a spinning lidar with rings
+    further apart than columns, the next column of the same ring); ring spacing is the median over
+    points of the smallest polar step to a neighbour that lies more above / below than beside them. A
+    32-beam lidar has rings ~1.3 deg apart and columns ~0.2-0.3 deg (0.25): its K nearest neighbours on
+    the sphere all lie on the point's own ring, and the gradient across rings (horizontal edges) cannot
+    be seen. Rings denser than columns already give two-dimensional neighbourhoods at K = 8 and give
+    1.0 here (a symmetric estimate that stretched them instead cost the simulated street, 0.42 deg rings
+    x 0.70 deg columns, 0.06 -> 6.4 deg); 1.0 also for isotropic sampling."""
     n = sphere_uv.shape[0]
     if n <= k_probe + 1:
         return 1.0
     probe = np.random.default_rng(0).choice(n, size=min(n_probe, n), replace=False)
-    _, idx = cKDTree(sphere_uv).query(sphere_uv[probe], k=k_probe + 1, workers=-1)
+    dist, idx = cKDTree(sphere_uv).query(sphere_uv[probe], k=k_probe + 1, workers=-1)
     offsets = sphere_uv[np.asarray(idx)[:, 1:]] - sphere_uv[probe][:, None, :]
+    column = float(np.median(np.asarray(dist)[:, 1]))
     d_az, d_polar = np.abs(offsets[..., 0]), np.abs(offsets[..., 1])
-    beside = np.where((d_az > 2.0 * d_polar) & (d_az > 0), d_az, np.inf).min(axis=1)
-    above = np.where((d_polar > 2.0 * d_az) & (d_polar > 0), d_polar, np.inf).min(axis=1)
-    beside, above = beside[np.isfinite(beside)], above[np.isfinite(above)]
-    if beside.size < probe.size // 4 or above.size < probe.size // 4:
+    vertical = np.where(d_polar > 2.0 * d_az, d_polar, np.inf).min(axis=1)
+    vertical = vertical[np.isfinite(vertical)]
+    if column <= 0 or vertical.size < probe.size // 4:
         return 1.0
-    return float(np.clip(np.median(beside) / np.median(above), 0.05, 1.0))
+    return float(np.clip(column / np.median(vertical), 0.05, 1.0))
 
 
 def sphere_neighbours(sphere_uv: NDArray[np.float64], k: int = 8, polar_scale: float = 1.0) -> NDArray[np.int64]:
