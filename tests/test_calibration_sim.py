@@ -121,28 +121,3 @@ def test_open_scene_geometric_features(sim_dir: Path, feature: str) -> None:
     result = calibrate(frames, T_init, CalibrationConfig())
     assert rotation_error_deg(result.T_camera_lidar, T_true) <= 0.5
     assert translation_error_m(result.T_camera_lidar, T_true) <= 0.1
-
-
-def test_coarse_gradients_equal_gradients_of_the_more_blurred_image() -> None:
-    """``blurred_frames`` (coarse stage of ``coarse_to_fine``) blurs gx / gy; that must equal the
-    Sobel of the image blurred by ``factor`` times the default sigma (blur and Sobel commute)."""
-    import cv2
-
-    from pipeline.camera_model import CameraModel
-    from stages.calibration.calibrator import blurred_frames, default_blur_sigma_px
-    from stages.image_gradients import compute_image_gradients
-
-    rng = np.random.default_rng(3)
-    image = cv2.resize(rng.integers(0, 256, (45, 80), dtype=np.uint8), (640, 360),
-                       interpolation=cv2.INTER_NEAREST)
-    camera = CameraModel(640, 360, np.array([[500.0, 0, 320], [0, 500.0, 180], [0, 0, 1]]), np.zeros(5))
-    sigma = default_blur_sigma_px(640)
-    frame = CalibrationFrame(points_xyz=np.zeros((1, 3)), feature=np.zeros(1), camera=camera,
-                             gradients=compute_image_gradients(image, blur_sigma_px=sigma))
-    coarse = blurred_frames([frame], 4.0)[0].gradients
-    direct = compute_image_gradients(image, blur_sigma_px=4.0 * sigma)
-    inner = (slice(40, -40), slice(40, -40))
-    scale = float(np.abs(direct.gx[inner]).max())
-    assert np.abs(coarse.gx[inner] - direct.gx[inner]).max() < 0.005 * scale
-    assert np.abs(coarse.gy[inner] - direct.gy[inner]).max() < 0.005 * scale
-    assert np.abs(coarse.gx[inner]).max() < 0.5 * float(np.abs(frame.gradients.gx[inner]).max())

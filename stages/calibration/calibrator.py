@@ -15,12 +15,14 @@ swarm's optimum does not cure it (two rounds: 0.60 deg / 22 cm -> 0.22 / 10.5 ->
 0.18 deg / 21 cm). Lidar gradients taken on the lidar's own sphere do not depend on the initial
 translation; with the least-squares fit and neighbours across rings all 10 seeds land within the
 bound; ``gradient_viewpoint='auto'`` takes them whenever the translation box is wider than 0.5 m
-(see ``CalibrationConfig.gradient_viewpoint``).
+(see ``CalibrationConfig.gradient_viewpoint``). A coarse-to-fine schedule (whole box against image
+gradients blurred 4x, then a 2 deg / 0.2 m box re-linearised at its optimum) hurt every case measured
+(KITTI from tf 1.11 deg / 18 cm vs 0.14 / 8; simulated street 640x360 intensity 0.53 deg / 8.3 cm vs
+0.25 / 1.0) and was removed.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Literal, Protocol
@@ -135,18 +137,6 @@ class CalibrationConfig:
             chance; the best of thousands of poses on an unrelated image reaches ~0.5-0.55, while
             real matches score 0.6-0.8 (KITTI 0.77, nuScenes 0.65, PJLab 0.60, synthetic 0.85).
         ok_rotation_deg, ok_translation_m: changes below both keep the verdict ``ok``.
-        coarse_to_fine: first optimise over the whole box against image gradients blurred to
-            ``coarse_blur_factor`` times their blur (wide basin), then recompute the lidar sphere
-            gradients at that optimum and refine in a box of ``fine_search_deg`` / ``fine_search_m``
-            around it with the frames' own gradients. Off by default: it hurt every case measured
-            (factor 4, fine box 2 deg / 0.2 m: KITTI from tf 1.11 deg / 18 cm vs 0.14 / 8; KITTI
-            5 deg / 0.5 m start, seed 0, box 10 deg / 1 m: 1.75 deg / 113 cm; simulated street
-            1280x720 range 2.36 deg / 51 cm vs 1.43 / 24; 640x360 intensity 0.53 deg / 8.3 cm vs
-            0.25 / 1.0; factor 2 with a 0.5 m fine box: KITTI 0.61 deg / 15 cm).
-        coarse_blur_factor: total blur of the coarse stage over the frames' blur (the frames are
-            assumed to carry ``default_blur_sigma_px`` of their width; the extra Gaussian is applied
-            to gx / gy, which equals blurring the image first since both are linear).
-        fine_search_deg, fine_search_m: half-widths of the fine stage's box (capped by the full box).
         occlusion_filter: at preparation (initial guess, after ego-motion) drop lidar points hidden from
             the camera behind nearer lidar points, per frame, with the coarse z-buffer of
             ``stages.colorize.unoccluded`` (cells of ``occlusion_cell_px`` pixels; a point is kept when
@@ -217,10 +207,6 @@ class CalibrationConfig:
     gom_suspect_below: float = 0.55
     ok_rotation_deg: float = 0.2
     ok_translation_m: float = 0.02
-    coarse_to_fine: bool = False
-    coarse_blur_factor: float = 4.0
-    fine_search_deg: float = 2.0
-    fine_search_m: float = 0.2
     occlusion_filter: bool = False
     occlusion_cell_px: int = 4
     occlusion_rel_tol: float = 0.1
@@ -266,8 +252,6 @@ class CalibrationConfig:
             raise ConfigError("lidar_magnitude must be 'paper' or 'vector'")
         if not 0 < self.focal_search < 0.5:
             raise ConfigError("focal_search must be in (0, 0.5)")
-        if self.coarse_blur_factor < 1 or self.fine_search_deg <= 0 or self.fine_search_m <= 0:
-            raise ConfigError("need coarse_blur_factor >= 1 and positive fine_search_deg / fine_search_m")
         if self.gradient_viewpoint not in ("auto", "camera", "lidar"):
             raise ConfigError("gradient_viewpoint must be 'auto', 'camera' or 'lidar'")
         if self.gradient_fit not in ("auto", "paper", "lsq"):
@@ -565,31 +549,6 @@ def _flat(problem: CalibrationProblem, x_best: NDArray[np.float64], best: float,
     return drop < cfg.flat_fraction * max(abs(best - chance), 1e-12)
 
 
-def blurred_frames(frames: list[CalibrationFrame], factor: float) -> list[CalibrationFrame]:
-    """Copies of ``frames`` whose image gradients (and grey, for NMI) carry ``factor`` times the
-    default blur of their width: an extra Gaussian of ``sigma0 * sqrt(factor**2 - 1)`` px on gx / gy
-    (blur and Sobel are linear, so this equals blurring the image before the Sobel)."""
-    import cv2
-
-    from stages.image_gradients import ImageGradients
-
-    out: list[CalibrationFrame] = []
-    for f in frames:
-        extra = default_blur_sigma_px(f.camera.width) * float(np.sqrt(max(factor**2 - 1.0, 0.0)))
-        if extra <= 0:
-            out.append(f)
-            continue
-        gx = np.asarray(cv2.GaussianBlur(np.asarray(f.gradients.gx, dtype=np.float32), (0, 0), extra),
-                        dtype=np.float32)
-        gy = np.asarray(cv2.GaussianBlur(np.asarray(f.gradients.gy, dtype=np.float32), (0, 0), extra),
-                        dtype=np.float32)
-        grads = ImageGradients(gx, gy, np.hypot(gx, gy), np.arctan2(gy, gx))
-        intensity = None if f.intensity is None else np.asarray(cv2.GaussianBlur(
-            np.asarray(f.intensity, dtype=np.float32), (0, 0), extra), dtype=np.float32)
-        out.append(dataclasses.replace(f, gradients=grads, intensity=intensity))
-    return out
-
-
 @dataclass
 class _Run:
     score: float
@@ -611,12 +570,9 @@ def _best_of(problem: CalibrationProblem, seed: int) -> _Run:
 
 def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
               config: CalibrationConfig | None = None) -> CalibrationResult:
-    """Estimate ``T_camera_lidar`` from paired frames, starting at ``T_camera_lidar_init``.
-
-    With ``coarse_to_fine`` each run optimises first over the whole box against strongly blurred
-    image gradients, then recomputes the lidar sphere gradients at that optimum and refines in a
-    small box with the frames' own gradients (score, per-frame scores and flatness are those of the
-    fine stage; ``initial_score`` is always the frames' metric at the initial guess).
+    """Estimate ``T_camera_lidar`` from paired frames, starting at ``T_camera_lidar_init``: ``repeats``
+    seeded swarm + polish runs over one objective; the best-scoring run is returned and the spread of
+    the runs is the uncertainty.
 
     Raises:
         ProcessingError: no frames, or the camera sees (almost) no lidar points anywhere in the box.
@@ -627,19 +583,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     centre = 0.5 * (problem.lower + problem.upper)
     start = time.perf_counter()
     init_scores, _ = problem.frame_scores(centre[None])
-    coarse = (CalibrationProblem(blurred_frames(frames, cfg.coarse_blur_factor), T_camera_lidar_init, cfg)
-              if cfg.coarse_to_fine else None)
-    fine_cfg = dataclasses.replace(cfg, search_deg=min(cfg.search_deg, cfg.fine_search_deg),
-                                   search_m=min(cfg.search_m, cfg.fine_search_m))
-    runs: list[_Run] = []
-    for r in range(cfg.repeats):
-        if coarse is None:
-            runs.append(_best_of(problem, cfg.seed + r))
-            continue
-        first = _best_of(coarse, cfg.seed + r)
-        fine = _best_of(CalibrationProblem(frames, first.T_camera_lidar, fine_cfg), cfg.seed + r)
-        fine.iterations += first.iterations
-        runs.append(fine)
+    runs = [_best_of(problem, cfg.seed + r) for r in range(cfg.repeats)]
     runtime = time.perf_counter() - start
     best_run = runs[int(np.argmax([run.score for run in runs]))]
     score, x_best, iterations, best_problem = best_run.score, best_run.x, best_run.iterations, best_run.problem
@@ -666,8 +610,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         verdict = "recalibrated"
     else:
         verdict = "ok"
-    evaluations = problem.evaluations + (coarse.evaluations if coarse is not None else 0) + sum(
-        run.problem.evaluations for run in runs if run.problem is not problem)
+    evaluations = problem.evaluations
     return CalibrationResult(
         T_camera_lidar=T_best, T_camera_lidar_initial=problem.T_init.copy(), score=float(score),
         initial_score=initial_score, frame_scores=final_scores[0], frame_initial_scores=init_scores[0],
