@@ -138,7 +138,8 @@ class CalibrationConfig:
         gradient_viewpoint: where lidar gradients are taken: ``camera`` (paper: sphere at the camera at
             the initial guess), ``lidar`` (the lidar's own sphere, edge directions carried into the
             camera's view) or ``auto`` (default: camera while ``search_m`` <= 0.5 m, lidar for wider
-            boxes); evidence in ``stages.calibration.calibrator.CalibrationConfig``.
+            boxes or rings too sparse for the camera sphere); evidence in
+            ``stages.calibration.calibrator.CalibrationConfig``.
         gradient_fit: ``paper`` (Algorithm 1), ``lsq`` (least-squares gradient over the neighbours) or
             ``auto`` (lsq on the lidar's sphere, paper on the camera's).
         gradient_neighbours: ``angle`` (paper), ``sampling`` (neighbours across a sparse lidar's rings) or

@@ -21,7 +21,7 @@ from pipeline.transforms import invert, rotation_error_deg, translation_error_m
 from readers.frames import load_tf_tree
 from readers.open import open_log
 from stages.calibration import CalibrationConfig, CalibrationFrame, calibrate
-from stages.calibration.calibrator import build_frame
+from stages.calibration.calibrator import build_frame, resolve_viewpoint
 from tests.conftest import SHARED_DATA
 from tests.test_calibration_synthetic import perturb
 from workflows.calibrate import solver_config
@@ -151,16 +151,23 @@ def test_pjlab_two_frames_with_distortion() -> None:
 
 @pytest.mark.slow
 def test_nuscenes_six_cameras_joint_with_ego_motion() -> None:
-    """Range feature, camera sphere: measured 0.37 deg. With the default range+normals the camera sphere
-    gives 1.52 deg on this 32-beam lidar and ``--gradient-viewpoint lidar`` 0.53 (its neighbours reach
-    across rings), which the second half checks."""
+    """Workflow defaults. The 32-beam lidar's points have about one of their 8 nearest sphere neighbours
+    on another ring, so ``auto`` takes the lidar viewpoint with neighbours across rings: measured
+    0.53 deg (range alone 0.51; the paper's camera sphere: 1.52, range 0.37)."""
     log_path("nuscenes_n015.bag")
-    problem = load_real_frames("nuscenes_n015.bag", feature="range", cameras=6, ego_motion=True)
+    problem = load_real_frames("nuscenes_n015.bag", cameras=6, ego_motion=True)
     assert len(problem.frames) == 6
-    result = calibrate(problem.frames, problem.T_init, CalibrationConfig())
+    config = solver_config(Config())
+    assert config.viewpoint == "camera"  # by the box alone
+    assert resolve_viewpoint(problem.frames, problem.T_init, config).viewpoint == "lidar"  # by the rings
+    result = calibrate(problem.frames, problem.T_init, config)
     rot, _ = errors(result.T_camera_lidar, problem.T_true)
     assert rot <= 0.6, f"rotation error {rot:.3f} deg"
-    both = load_real_frames("nuscenes_n015.bag", cameras=6, ego_motion=True)
-    lidar_view = replace(solver_config(Config()), gradient_viewpoint="lidar")
-    rot, _ = errors(calibrate(both.frames, both.T_init, lidar_view).T_camera_lidar, both.T_true)
-    assert rot <= 0.6, f"rotation error {rot:.3f} deg (range+normals, lidar viewpoint)"
+
+
+def test_dense_rings_keep_the_camera_viewpoint() -> None:
+    """KITTI's 64 beams give about 3 of 8 sphere neighbours on other rings: ``auto`` keeps the paper's
+    camera sphere in the default box."""
+    log_path("kitti_2011_09_26.mcap")
+    problem = load_real_frames("kitti_2011_09_26.mcap")
+    assert resolve_viewpoint(problem.frames, problem.T_init, solver_config(Config())).viewpoint == "camera"

@@ -23,6 +23,7 @@ gradients blurred 4x, then a 2 deg / 0.2 m box re-linearised at its optimum) hur
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import Literal, Protocol
@@ -47,8 +48,10 @@ from stages.calibration.metrics import (
 from stages.calibration.pso import SwarmResult, particle_swarm, pattern_search
 from stages.calibration.sphere_gradients import (
     compute_sphere_gradients,
+    cross_ring_neighbours,
     depth_discontinuities,
     lidar_view_gradients,
+    sphere_coordinates,
 )
 from stages.colorize import unoccluded
 
@@ -154,10 +157,13 @@ class CalibrationConfig:
             edge direction stepped along the point's surface and carried into the camera view with
             parallax; it does not depend on the initial translation. ``auto`` (default): ``camera``
             while ``search_m`` <= ``auto_lidar_viewpoint_above_m`` (the initial translation is trusted,
-            e.g. a drifted factory calibration), ``lidar`` for wider boxes. Evidence (range+normals, 3
+            e.g. a drifted factory calibration), ``lidar`` for wider boxes, and ``lidar`` as well when
+            the scan's rings are too sparse for the camera sphere (``calibrate`` applies
+            ``resolve_viewpoint``: fewer than 2 of 8 sphere neighbours on other rings). Evidence (range+normals, 3
             repeats, lidar view with the auto fit and neighbours vs camera view) from each log's tf,
             box 5 deg / 0.5 m: KITTI 0.189 deg / 3.7 cm vs 0.133 / 7.2; PJLab rig1 0.85 / 45 vs 0.186 /
-            27; nuScenes joint+ego 0.53 deg vs 1.52 (range: 0.51 vs 0.37); simulated street (intensity)
+            27; nuScenes joint+ego 0.53 deg vs 1.52 (range: 0.51 vs 0.37; without ego-motion 0.99 vs 1.23 with
+            range on the camera's); simulated street (intensity)
             0.046 / 0.8 vs 0.249 / 1.0; simulated open yard (intensity) 3.71 / 36 vs 0.132 / 1.5. From
             KITTI starts 5 deg / 0.5 m off, box 10 deg / 1 m: 10 of 10 seeds within 0.3 deg / 10 cm
             (0.12-0.18 deg / 3-6 cm) vs 0 of 10 (``bench_gom.py --seeds 10``). Neither view wins
@@ -568,6 +574,22 @@ def _best_of(problem: CalibrationProblem, seed: int) -> _Run:
                 swarm.iterations + (polish.iterations if polish is not None else 0))
 
 
+def resolve_viewpoint(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
+                      config: CalibrationConfig) -> CalibrationConfig:
+    """``config`` with the data part of the ``auto`` viewpoint applied: where the box alone would pick
+    the camera sphere but the scan's rings are so sparse that its points have fewer than 2 of their
+    ``sphere_k`` nearest neighbours on other rings (``cross_ring_neighbours`` on the first frame's
+    lidar sphere), the lidar viewpoint with neighbours across rings is taken instead."""
+    if config.gradient_viewpoint != "auto" or config.viewpoint != "camera" or config.metric != "gom" or not frames:
+        return config
+    points = np.asarray(frames[0].points_xyz, dtype=np.float64)
+    points = points[np.all(np.isfinite(points), axis=1)]
+    R = (np.asarray(frames[0].T_camera_camera0) @ np.asarray(T_camera_lidar_init))[:3, :3]
+    if cross_ring_neighbours(sphere_coordinates(points @ R.T), config.sphere_k) >= 2:
+        return config
+    return dataclasses.replace(config, gradient_viewpoint="lidar")
+
+
 def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
               config: CalibrationConfig | None = None) -> CalibrationResult:
     """Estimate ``T_camera_lidar`` from paired frames, starting at ``T_camera_lidar_init``: ``repeats``
@@ -578,7 +600,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         ProcessingError: no frames, or the camera sees (almost) no lidar points anywhere in the box.
         ConfigError: invalid settings.
     """
-    cfg = config or CalibrationConfig()
+    cfg = resolve_viewpoint(frames, T_camera_lidar_init, config or CalibrationConfig())
     problem = CalibrationProblem(frames, T_camera_lidar_init, cfg)
     centre = 0.5 * (problem.lower + problem.upper)
     start = time.perf_counter()

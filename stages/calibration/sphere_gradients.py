@@ -79,6 +79,20 @@ def sampling_aspect(sphere_uv: NDArray[np.float64], n_probe: int = 4000, k_probe
     return float(np.clip(column / np.median(vertical), 0.05, 1.0))
 
 
+def cross_ring_neighbours(sphere_uv: NDArray[np.float64], k: int = 8, n_probe: int = 4000) -> float:
+    """Median over points of how many of their k nearest neighbours on the sphere lie more above /
+    below them than beside them (on other rings of a spinning lidar). Below 2 a gradient across the
+    rings has no neighbour on one side or both: horizontal edges are invisible to Algorithm 1 there.
+    Measured (k = 8, lidar sphere): KITTI 3, PJLab 4, simulator 3, nuScenes (32 beams) 1."""
+    n = sphere_uv.shape[0]
+    if n <= k + 1:
+        return float(k)
+    probe = np.random.default_rng(0).choice(n, size=min(n_probe, n), replace=False)
+    _, idx = cKDTree(sphere_uv).query(sphere_uv[probe], k=k + 1, workers=-1)
+    offsets = sphere_uv[np.asarray(idx)[:, 1:]] - sphere_uv[probe][:, None, :]
+    return float(np.median((np.abs(offsets[..., 1]) > np.abs(offsets[..., 0])).sum(axis=1)))
+
+
 def sphere_neighbours(sphere_uv: NDArray[np.float64], k: int = 8, polar_scale: float = 1.0) -> NDArray[np.int64]:
     """(N, k) indices of each point's k nearest neighbours on the sphere (cKDTree, self excluded), with
     polar angles multiplied by ``polar_scale`` for the search (``sampling_aspect``: neighbours as in
