@@ -10,6 +10,7 @@ from numpy.typing import NDArray
 from pipeline.transforms import apply, from_xyz_rpy
 from stages.calibration.sphere_gradients import (
     compute_sphere_gradients,
+    cross_ring_neighbours,
     lidar_view_gradients,
     sampling_aspect,
     sphere_coordinates,
@@ -122,3 +123,10 @@ def test_sampling_neighbours_see_an_edge_between_sparse_rings() -> None:
     assert np.all(by_sampling.magnitude[inner] > 0)
     vertical = _doubled_angle_error_deg(by_sampling.orientation[inner], np.full(inner.sum(), np.pi / 2))
     assert np.median(vertical) < 1.0, f"edge gradient {np.median(vertical):.2f} deg off vertical"
+
+
+def test_cross_ring_neighbours_separate_sparse_from_dense_rings() -> None:
+    sparse = sphere_coordinates(_scan_grid(ring_step_deg=1.33, column_step_deg=0.33, range_m=10.0))
+    dense = sphere_coordinates(_scan_grid(ring_step_deg=0.4, column_step_deg=0.17, range_m=10.0))
+    assert cross_ring_neighbours(sparse, 8) < 2  # the camera sphere cannot see horizontal edges
+    assert cross_ring_neighbours(dense, 8) >= 2
