@@ -122,7 +122,7 @@ def sim_table(names: list[str], metrics: list[str]) -> None:
                 trans = translation_error_m(result.T_camera_lidar, T_true)
                 print(f"{name:18s} {metric:9s} {rot:8.3f} {trans:8.3f} {result.score:8.4f} "
                       f"{result.initial_score:8.4f} {result.runtime_s:9.1f} {deg:4.0f}/{metres:.1f}m "
-                      f"{cfg.viewpoint}", flush=True)
+                      f"{result.gradient_viewpoint}", flush=True)
 
 
 def seeds_study(n: int) -> None:
@@ -152,13 +152,13 @@ def main() -> None:
     parser.add_argument("--metrics", nargs="*", default=["gom", "nmi", "levinson"])
     parser.add_argument("--seeds", type=int, default=0, help="KITTI offset study with this many seeds")
     parser.add_argument("--skip-table", action="store_true")
-    parser.add_argument("--sim", nargs="*", default=[], choices=list(SIM_CASES),
+    parser.add_argument("--sim", nargs="*", default=None, choices=list(SIM_CASES),
                         help="simulated cases to add (give the flag alone for all)")
     args = parser.parse_args()
     bench_kernel()
     if not args.skip_table:
         table(args.logs, args.metrics)
-    if args.sim is not None and "--sim" in sys.argv:
+    if args.sim is not None:
         sim_table(args.sim or list(SIM_CASES), args.metrics)
     if args.seeds:
         seeds_study(args.seeds)

@@ -119,8 +119,8 @@ class CalibrationConfig:
             sphere by evidence over the real logs and the simulator (3 repeats, from the logs' tf;
             range alone in brackets): KITTI 0.133 deg / 7.2 cm (0.142 / 8.0), PJLab rig1 0.186 / 27
             (6.69 / 29), simulated street 640x360 0.545 / 16 (3.93 / 30), nuScenes joint 1.52 / 26
-            (0.37 / 22); with the lidar viewpoint (now the default) nuScenes joint 0.53 deg (range
-            0.51). Runtime about 2x that of one feature.
+            (0.37 / 22); with the lidar viewpoint, which ``gradient_viewpoint = "auto"`` picks for
+            its sparse rings, nuScenes joint 0.53 deg (range 0.51). Runtime about 2x that of one feature.
         frames: lidar/camera pairs used.
         particles: particle swarm size.
         iterations: particle swarm iterations.

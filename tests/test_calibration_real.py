@@ -95,6 +95,7 @@ def test_kitti_default_settings_from_log_tf() -> None:
     rot0, trans0 = errors(problem.T_init, problem.T_true)
     assert rot0 > 1.5 and trans0 > 0.1  # the log's tf is the drifted calibration
     result = calibrate(problem.frames, problem.T_init, solver_config(Config()))
+    assert result.gradient_viewpoint == "camera"
     rot, trans = errors(result.T_camera_lidar, problem.T_true)
     assert rot <= 0.3, f"rotation error {rot:.3f} deg"
     assert trans <= 0.10, f"translation error {trans:.3f} m"
@@ -161,6 +162,7 @@ def test_nuscenes_six_cameras_joint_with_ego_motion() -> None:
     assert config.viewpoint == "camera"  # by the box alone
     assert resolve_viewpoint(problem.frames, problem.T_init, config).viewpoint == "lidar"  # by the rings
     result = calibrate(problem.frames, problem.T_init, config)
+    assert result.gradient_viewpoint == "lidar"
     rot, _ = errors(result.T_camera_lidar, problem.T_true)
     assert rot <= 0.6, f"rotation error {rot:.3f} deg"
 

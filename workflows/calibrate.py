@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -376,13 +376,14 @@ def write_calibration(pairs: list[PairCalibration], config: Config, out_dir: Pat
 
 def landscape(pair: PairCalibration, config: Config, out_dir: Path, steps: int = 21) -> Path | None:
     """Score slices around the optimum (rotation about camera x/y, translation along x/y) as one PNG."""
-    from stages.calibration.calibrator import CalibrationProblem, resolve_viewpoint
+    from stages.calibration.calibrator import CalibrationProblem
     from stages.calibration.landscape import score_landscape
 
     if not pair.frames:
         return None
-    T = pair.result.T_camera_lidar
-    problem = CalibrationProblem(pair.frames, T, resolve_viewpoint(pair.frames, T, solver_config(config)))
+    # the objective that was optimised: the viewpoint calibrate() resolved, not re-derived here
+    solver = replace(solver_config(config), gradient_viewpoint=pair.result.gradient_viewpoint)
+    problem = CalibrationProblem(pair.frames, pair.result.T_camera_lidar, solver)
     centre = problem.x_of(pair.result.T_camera_lidar)
     if problem.dim > centre.size:
         centre = np.append(centre, pair.result.focal_scale)

@@ -159,12 +159,12 @@ class CalibrationConfig:
             while ``search_m`` <= ``auto_lidar_viewpoint_above_m`` (the initial translation is trusted,
             e.g. a drifted factory calibration), ``lidar`` for wider boxes, and ``lidar`` as well when
             the scan's rings are too sparse for the camera sphere (``calibrate`` applies
-            ``resolve_viewpoint``: fewer than 2 of 8 sphere neighbours on other rings). Evidence (range+normals, 3
-            repeats, lidar view with the auto fit and neighbours vs camera view) from each log's tf,
-            box 5 deg / 0.5 m: KITTI 0.189 deg / 3.7 cm vs 0.133 / 7.2; PJLab rig1 0.85 / 45 vs 0.186 /
-            27; nuScenes joint+ego 0.53 deg vs 1.52 (range: 0.51 vs 0.37; without ego-motion 0.99 vs 1.23 with
-            range on the camera's); simulated street (intensity)
-            0.046 / 0.8 vs 0.249 / 1.0; simulated open yard (intensity) 3.71 / 36 vs 0.132 / 1.5. From
+            ``resolve_viewpoint``: fewer than 2 of 8 sphere neighbours on other rings). Evidence
+            (range+normals, 3 repeats, lidar view with the auto fit and neighbours vs camera view) from
+            each log's tf, box 5 deg / 0.5 m: KITTI 0.189 deg / 3.7 cm vs 0.133 / 7.2; PJLab rig1 0.85 /
+            45 vs 0.186 / 27; nuScenes joint+ego 0.53 deg vs 1.52 (range: 0.51 vs 0.37; without
+            ego-motion 0.99 vs 1.23 with range on the camera's); simulated street (intensity) 0.046 /
+            0.8 vs 0.249 / 1.0; simulated open yard (intensity) 3.71 / 36 vs 0.132 / 1.5. From
             KITTI starts 5 deg / 0.5 m off, box 10 deg / 1 m: 10 of 10 seeds within 0.3 deg / 10 cm
             (0.12-0.18 deg / 3-6 cm) vs 0 of 10 (``bench_gom.py --seeds 10``). Neither view wins
             everywhere; the camera view is never far off from a close start, the lidar view is the one
@@ -289,6 +289,7 @@ class CalibrationResult:
             (NaN with one repeat).
         focal_scale: estimated fx/fy scale (1.0 unless ``estimate_focal``).
         metric: metric name.
+        gradient_viewpoint: viewpoint of the lidar gradients that was used (``auto`` resolved).
     """
 
     T_camera_lidar: Mat4
@@ -308,6 +309,7 @@ class CalibrationResult:
     translation_std_m: float
     focal_scale: float
     metric: str
+    gradient_viewpoint: str
 
 
 class Scorer(Protocol):
@@ -639,7 +641,8 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         frames_used=len(frames), points_used=list(best_problem.points_used), runtime_s=runtime,
         iterations=iterations, evaluations=evaluations, verdict=verdict, flat=flat,
         rotation_std_deg=rot_std, translation_std_m=trans_std,
-        focal_scale=float(x_best[6]) if x_best.size > 6 else 1.0, metric=cfg.metric)
+        focal_scale=float(x_best[6]) if x_best.size > 6 else 1.0, metric=cfg.metric,
+        gradient_viewpoint=cfg.viewpoint)
 
 
 def default_blur_sigma_px(width_px: int) -> float:

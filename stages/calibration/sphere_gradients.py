@@ -53,6 +53,16 @@ def sphere_coordinates(points_cam: NDArray[np.floating]) -> NDArray[np.float64]:
     return np.ascontiguousarray(np.stack([azimuth, polar], axis=1))
 
 
+def _probe_neighbours(sphere_uv: NDArray[np.float64], k: int, n_probe: int) -> tuple[
+        NDArray[np.float64], NDArray[np.float64]]:
+    """Distances (P, k) and offsets (P, k, 2) of the k nearest sphere neighbours (self excluded) of up
+    to ``n_probe`` points drawn with a fixed seed."""
+    probe = np.random.default_rng(0).choice(sphere_uv.shape[0], size=min(n_probe, sphere_uv.shape[0]), replace=False)
+    dist, idx = cKDTree(sphere_uv).query(sphere_uv[probe], k=k + 1, workers=-1)
+    offsets = sphere_uv[np.asarray(idx)[:, 1:]] - sphere_uv[probe][:, None, :]
+    return np.asarray(dist)[:, 1:], offsets
+
+
 def sampling_aspect(sphere_uv: NDArray[np.float64], n_probe: int = 4000, k_probe: int = 32) -> float:
     """Ratio of the scan's column spacing to its ring spacing on the sphere, in (0, 1].
 
@@ -67,14 +77,12 @@ def sampling_aspect(sphere_uv: NDArray[np.float64], n_probe: int = 4000, k_probe
     n = sphere_uv.shape[0]
     if n <= k_probe + 1:
         return 1.0
-    probe = np.random.default_rng(0).choice(n, size=min(n_probe, n), replace=False)
-    dist, idx = cKDTree(sphere_uv).query(sphere_uv[probe], k=k_probe + 1, workers=-1)
-    offsets = sphere_uv[np.asarray(idx)[:, 1:]] - sphere_uv[probe][:, None, :]
-    column = float(np.median(np.asarray(dist)[:, 1]))
+    dist, offsets = _probe_neighbours(sphere_uv, k_probe, n_probe)
+    column = float(np.median(dist[:, 0]))
     d_az, d_polar = np.abs(offsets[..., 0]), np.abs(offsets[..., 1])
     vertical = np.where(d_polar > 2.0 * d_az, d_polar, np.inf).min(axis=1)
     vertical = vertical[np.isfinite(vertical)]
-    if column <= 0 or vertical.size < probe.size // 4:
+    if column <= 0 or vertical.size < dist.shape[0] // 4:
         return 1.0
     return float(np.clip(column / np.median(vertical), 0.05, 1.0))
 
@@ -87,9 +95,7 @@ def cross_ring_neighbours(sphere_uv: NDArray[np.float64], k: int = 8, n_probe: i
     n = sphere_uv.shape[0]
     if n <= k + 1:
         return float(k)
-    probe = np.random.default_rng(0).choice(n, size=min(n_probe, n), replace=False)
-    _, idx = cKDTree(sphere_uv).query(sphere_uv[probe], k=k + 1, workers=-1)
-    offsets = sphere_uv[np.asarray(idx)[:, 1:]] - sphere_uv[probe][:, None, :]
+    _, offsets = _probe_neighbours(sphere_uv, k, n_probe)
     return float(np.median((np.abs(offsets[..., 1]) > np.abs(offsets[..., 0])).sum(axis=1)))
 
 
