@@ -7,8 +7,11 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
+from pipeline.errors import ProcessingError
 from pipeline.transforms import apply, from_xyz_rpy
 from stages.calibration.sphere_gradients import (
+    LidarGradients,
+    camera_sphere_neighbours,
     compute_sphere_gradients,
     cross_ring_neighbours,
     lidar_view_gradients,
@@ -130,3 +133,29 @@ def test_cross_ring_neighbours_separate_sparse_from_dense_rings() -> None:
     dense = sphere_coordinates(_scan_grid(ring_step_deg=0.4, column_step_deg=0.17, range_m=10.0))
     assert cross_ring_neighbours(sparse, 8) < 2  # the camera sphere cannot see horizontal edges
     assert cross_ring_neighbours(dense, 8) >= 2
+
+
+@pytest.mark.parametrize("view", ["camera", "lidar"])
+def test_second_channel_reuses_the_first_channels_neighbours(view: str) -> None:
+    """Feature channels of one frame share one sphere search: a second channel's gradients from the
+    first channel's neighbours equal those from its own search, on both viewpoints."""
+    pts = _scan_grid(ring_step_deg=1.33, column_step_deg=0.33, range_m=10.0)
+    pts = pts * (1.0 + 0.2 * np.sin(np.arange(pts.shape[0]) * 0.37))[:, None]  # ranges 8-12 m
+    rng = np.random.default_rng(3)
+    first, second = rng.random(pts.shape[0]), rng.random(pts.shape[0])
+    T = from_xyz_rpy(0.1, -0.2, 0.05, 1.0, -0.5, 1.5)
+
+    def grads(values: NDArray[np.float64], neighbours: NDArray[np.int64] | None = None) -> LidarGradients:
+        if view == "camera":
+            return compute_sphere_gradients(pts, values, T, k=8, neighbours_by="sampling", neighbours=neighbours)
+        return lidar_view_gradients(pts, pts, values, T, k=8, neighbours_by="sampling", neighbours=neighbours)
+
+    shared = grads(second, grads(first).neighbours)
+    own = grads(second)
+    np.testing.assert_array_equal(shared.neighbours, own.neighbours)
+    np.testing.assert_allclose(np.column_stack([shared.gx, shared.gy, shared.magnitude]),
+                               np.column_stack([own.gx, own.gy, own.magnitude]), rtol=0, atol=1e-12)
+    if view == "camera":
+        np.testing.assert_array_equal(camera_sphere_neighbours(pts, T, 8, "sampling"), own.neighbours)
+    with pytest.raises(ProcessingError, match="do not match"):
+        compute_sphere_gradients(pts, second, T, k=8, neighbours=own.neighbours[:, :4])

@@ -47,6 +47,7 @@ from stages.calibration.metrics import (
 )
 from stages.calibration.pso import SwarmResult, particle_swarm, pattern_search
 from stages.calibration.sphere_gradients import (
+    camera_sphere_neighbours,
     compute_sphere_gradients,
     cross_ring_neighbours,
     depth_discontinuities,
@@ -455,32 +456,35 @@ class CalibrationProblem:
             return [NmiScorer(pts, feat[:, c], f.intensity, f.camera, f.mask, cfg.nmi_bins)
                     for c in range(feat.shape[1])], pts.shape[0]
         if cfg.metric == "levinson":  # depth discontinuities: the feature does not enter
-            grads = compute_sphere_gradients(pts, feat[:, 0], T_cam_lidar, k=cfg.sphere_k,
-                                             neighbours_by=cfg.neighbours_on("camera"))
-            weight = depth_discontinuities(pts, grads.neighbours, cfg.levinson_min_jump_m)
+            around = camera_sphere_neighbours(pts, T_cam_lidar, cfg.sphere_k, cfg.neighbours_on("camera"))
+            weight = depth_discontinuities(pts, around, cfg.levinson_min_jump_m)
             sel = weight > 0
             edges = levinson_edge_image(f.gradients.magnitude, cfg.levinson_blur_px)
             return [LevinsonScorer(pts[sel], weight[sel], edges, f.camera, f.mask)], int(sel.sum())
         scorers: list[Scorer] = []
         counts: list[int] = []
+        neighbours: NDArray[np.int64] | None = None  # one sphere search per frame, shared by the channels
         for c in range(feat.shape[1]):
-            scorer, n = self._gom_scorer(f, raw, pts, feat[:, c], T_cam_lidar)
+            scorer, n, neighbours = self._gom_scorer(f, raw, pts, feat[:, c], T_cam_lidar, neighbours)
             scorers.append(scorer)
             counts.append(n)
         return scorers, max(counts)
 
     def _gom_scorer(self, f: CalibrationFrame, raw: NDArray[np.float64], pts: NDArray[np.float64],
-                    feat: NDArray[np.float64], T_cam_lidar: Mat4) -> tuple[Scorer, int]:
-        """GOM scorer of one feature channel: lidar gradients (paper 3.3) and the point selection."""
+                    feat: NDArray[np.float64], T_cam_lidar: Mat4,
+                    neighbours: NDArray[np.int64] | None) -> tuple[Scorer, int, NDArray[np.int64]]:
+        """GOM scorer of one feature channel (lidar gradients, paper 3.3, and the point selection), its
+        point count and the sphere neighbours it used (``neighbours``: another channel's, or None)."""
         cfg = self.config
         if cfg.viewpoint == "lidar":
             grads = lidar_view_gradients(raw, pts, feat, T_cam_lidar,
                                          None if f.T_lidar_motion is None else f.T_lidar_motion[:3, :3],
-                                         k=cfg.sphere_k, fit=cfg.fit, neighbours_by=cfg.neighbours_on("lidar"))
+                                         k=cfg.sphere_k, fit=cfg.fit, neighbours_by=cfg.neighbours_on("lidar"),
+                                         neighbours=neighbours)
         else:
             grads = compute_sphere_gradients(pts, feat, T_cam_lidar, k=cfg.sphere_k,
                                              normalise=cfg.normalise_gradients, fit=cfg.fit,
-                                             neighbours_by=cfg.neighbours_on("camera"))
+                                             neighbours_by=cfg.neighbours_on("camera"), neighbours=neighbours)
         magnitude = grads.magnitude if cfg.lidar_magnitude == "paper" else np.hypot(grads.gx, grads.gy)
         sel = magnitude > 0
         if cfg.keep_fraction < 1.0 and np.any(sel):
@@ -489,7 +493,7 @@ class CalibrationProblem:
         scorer = GomScorer(pts[sel], grads.gx[sel], grads.gy[sel], magnitude[sel], f.gradients.gx,
                            f.gradients.gy, f.camera, f.mask,
                            T_cam_lidar[:3, :3] if cfg.turn_gradients_with_roll else None)
-        return scorer, int(sel.sum())
+        return scorer, int(sel.sum()), grads.neighbours
 
     def T_camera_lidar(self, x: NDArray[np.floating]) -> Mat4:
         """The extrinsic of parameters x (D,)."""

@@ -114,10 +114,21 @@ def sphere_neighbours(sphere_uv: NDArray[np.float64], k: int = 8, polar_scale: f
     return np.ascontiguousarray(out)
 
 
+def camera_sphere_neighbours(points_xyz: NDArray[np.floating], T_camera_lidar: NDArray[np.float64],
+                             k: int = 8, neighbours_by: str = "angle") -> NDArray[np.int64]:
+    """(N, k) sphere neighbours of lidar points (lidar frame, metres) on the sphere centred at the camera
+    of ``T_camera_lidar`` (``neighbours_by`` as in ``compute_sphere_gradients``); shared by every feature
+    channel of a frame and by Levinson's depth jumps."""
+    sphere_uv = sphere_coordinates(apply(T_camera_lidar, np.asarray(points_xyz, dtype=np.float64)))
+    scale = sampling_aspect(sphere_uv) if neighbours_by == "sampling" else 1.0
+    return sphere_neighbours(sphere_uv, k, scale)
+
+
 def compute_sphere_gradients(points_xyz: NDArray[np.floating], values: NDArray[np.floating],
                              T_camera_lidar: NDArray[np.float64], k: int = 8,
                              normalise: bool = False, fit: str = "paper",
-                             neighbours_by: str = "angle") -> LidarGradients:
+                             neighbours_by: str = "angle",
+                             neighbours: NDArray[np.int64] | None = None) -> LidarGradients:
     """Gradients of a per-point lidar feature as seen from the camera at ``T_camera_lidar``.
 
     Args:
@@ -129,6 +140,8 @@ def compute_sphere_gradients(points_xyz: NDArray[np.floating], values: NDArray[n
         fit: ``paper`` (Algorithm 1) or ``lsq`` (least-squares plane fit, ``sphere_gradient_lsq_kernel``).
         neighbours_by: ``angle`` (paper: nearest on the sphere) or ``sampling`` (polar angle scaled by
             ``sampling_aspect`` for the search, so sparse-ring lidars get neighbours across rings).
+        neighbours: (N, k) precomputed ``camera_sphere_neighbours`` of the same points and pose (another
+            feature channel's); None: searched here.
     """
     pts = np.asarray(points_xyz, dtype=np.float64)
     vals = np.ascontiguousarray(values, dtype=np.float64).ravel()
@@ -137,8 +150,11 @@ def compute_sphere_gradients(points_xyz: NDArray[np.floating], values: NDArray[n
     if not (np.all(np.isfinite(pts)) and np.all(np.isfinite(vals))):
         raise ProcessingError("lidar points or feature values contain NaN or infinity")
     sphere_uv = sphere_coordinates(apply(T_camera_lidar, pts))
-    scale = sampling_aspect(sphere_uv) if neighbours_by == "sampling" else 1.0
-    neighbours = sphere_neighbours(sphere_uv, k, scale)
+    if neighbours is None:
+        scale = sampling_aspect(sphere_uv) if neighbours_by == "sampling" else 1.0
+        neighbours = sphere_neighbours(sphere_uv, k, scale)
+    elif neighbours.shape != (pts.shape[0], k):
+        raise ProcessingError(f"neighbours {neighbours.shape} do not match {pts.shape[0]} points x k={k}")
     if fit == "lsq":
         gx, gy, mag = sphere_gradient_lsq_kernel(sphere_uv, vals, neighbours)
     else:
@@ -179,7 +195,8 @@ def _range_slope_along(sphere_uv: NDArray[np.float64], range_m: NDArray[np.float
 def lidar_view_gradients(raw_xyz: NDArray[np.floating], points_xyz: NDArray[np.floating],
                          values: NDArray[np.floating], T_camera_lidar: NDArray[np.float64],
                          R_motion: NDArray[np.float64] | None = None, k: int = 8,
-                         fit: str = "lsq", step_rad: float = 1e-3, neighbours_by: str = "angle") -> LidarGradients:
+                         fit: str = "lsq", step_rad: float = 1e-3, neighbours_by: str = "angle",
+                         neighbours: NDArray[np.int64] | None = None) -> LidarGradients:
     """Lidar gradients taken where the scan was captured and carried into the camera's view.
 
     On the camera-centred sphere (paper 3.3) a camera displaced from the lidar sees foreground and
@@ -199,7 +216,8 @@ def lidar_view_gradients(raw_xyz: NDArray[np.floating], points_xyz: NDArray[np.f
         values: (N,) lidar feature.
         T_camera_lidar: 4x4 estimate of the extrinsic.
         R_motion: 3x3 rotation of the ego-motion from scan to camera stamp (None: none).
-        k, fit: neighbours and gradient fit (see ``compute_sphere_gradients``).
+        k, fit, neighbours_by: neighbours and gradient fit (see ``compute_sphere_gradients``).
+        neighbours: precomputed lidar-sphere neighbours (another channel's ``.neighbours``); None: searched.
 
     Returns:
         gradients with ``gx, gy`` oriented in the camera's sphere, the paper's magnitude from the lidar's
@@ -211,7 +229,8 @@ def lidar_view_gradients(raw_xyz: NDArray[np.floating], points_xyz: NDArray[np.f
     R = T[:3, :3]
     T_turn = np.eye(4)
     T_turn[:3, :3] = R
-    at_lidar = compute_sphere_gradients(raw, values, T_turn, k=k, fit=fit, neighbours_by=neighbours_by)
+    at_lidar = compute_sphere_gradients(raw, values, T_turn, k=k, fit=fit, neighbours_by=neighbours_by,
+                                        neighbours=neighbours)
     norm = np.hypot(at_lidar.gx, at_lidar.gy)
     safe = np.where(norm > 0, norm, 1.0)
     edge_az, edge_polar = -at_lidar.gy / safe, at_lidar.gx / safe
