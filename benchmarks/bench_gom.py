@@ -33,6 +33,7 @@ from workflows.calibrate import solver_config
 CASES = {  # feature: the workflow default (range+normals) unless named
     "kitti": ("kitti_2011_09_26.mcap", {}),
     "pjlab": ("pjlab_road_rig1", {}),
+    "pjlab-rig2": ("pjlab_road_rig2", {}),
     "nuscenes": ("nuscenes_n015.bag", {"cameras": 6, "ego_motion": True}),
     "kitti-range": ("kitti_2011_09_26.mcap", {"feature": "range"}),
     "pjlab-range": ("pjlab_road_rig1", {"feature": "range"}),

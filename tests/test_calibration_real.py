@@ -137,7 +137,9 @@ def test_kitti_search_box_away_from_the_scan_is_a_clear_error() -> None:
 def test_pjlab_two_frames_with_distortion() -> None:
     """Workflow defaults: measured 0.186 deg / 27 cm (``--gradient-viewpoint lidar``: 0.85 / 45). The
     rotation meets the issue's 0.5 deg; the translation misses its 15 cm (xfail below, after a 35 cm
-    regression guard)."""
+    regression guard). The error lies mostly along the optical axis (z -23 cm, x -13 cm): every
+    channel (range, normals, intensity) and Levinson score the estimate above the reference, each
+    frame alone lands 63-66 cm off, and with no return nearer than ~4 m depth is weakly observed."""
     log_path("pjlab_road_rig1")
     problem = load_real_frames("pjlab_road_rig1")
     assert len(problem.frames) == 2
@@ -147,7 +149,24 @@ def test_pjlab_two_frames_with_distortion() -> None:
     assert rot <= 0.5, f"rotation error {rot:.3f} deg"
     assert trans <= 0.35, f"translation error {trans:.3f} m"
     if trans > 0.15:
-        pytest.xfail(f"translation {trans:.3f} m misses the issue's 0.15 m (sideways shift vs yaw, 2 frames)")
+        pytest.xfail(f"translation {trans:.3f} m misses the issue's 0.15 m (depth weakly observed, 2 frames)")
+
+
+@pytest.mark.slow
+def test_pjlab_rig2_single_raw_frame_of_another_rig() -> None:
+    """Another rig (raw bgr8 ``Image``, 5-coefficient distortion), one frame, workflow defaults: measured
+    2.00 deg / 13.2 cm -> 0.304 deg / 16.1 cm. One frame fixes the rotation; its translation is not
+    observed well enough to improve on the log's 13 cm (guard at 25 cm)."""
+    log_path("pjlab_road_rig2")
+    problem = load_real_frames("pjlab_road_rig2")
+    assert len(problem.frames) == 1
+    rot0, _ = errors(problem.T_init, problem.T_true)
+    result = calibrate(problem.frames, problem.T_init, solver_config(Config()))
+    rot, trans = errors(result.T_camera_lidar, problem.T_true)
+    assert rot0 > 1.5
+    assert rot <= 0.5, f"rotation error {rot:.3f} deg"
+    assert trans <= 0.25, f"translation error {trans:.3f} m"
+    assert result.score > result.initial_score
 
 
 @pytest.mark.slow
