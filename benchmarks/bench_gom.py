@@ -93,17 +93,19 @@ def table(names: list[str], metrics: list[str]) -> None:
                   flush=True)
 
 
-SIM_CASES = {  # name: (scene, feature, search_deg, search_m); the logs' tf is 5 deg / 0.5 m off
-    "sim-street": ("street", "intensity", 10.0, 1.0),
-    "sim-street-box5": ("street", "intensity", 5.0, 0.5),
-    "sim-open-intensity": ("open", "intensity", 5.0, 0.5),
-    "sim-open-range": ("open", "range", 5.0, 0.5),
-    "sim-open-normals": ("open", "normals", 5.0, 0.5),
+SIM_CASES = {  # name: (scene, feature, search_deg, search_m, beams); the logs' tf is 5 deg / 0.5 m off
+    "sim-street": ("street", "intensity", 10.0, 1.0, 64),
+    "sim-street-box5": ("street", "intensity", 5.0, 0.5, 64),
+    "sim-street-32beams": ("street", "intensity", 10.0, 1.0, 32),
+    "sim-street-16beams": ("street", "intensity", 10.0, 1.0, 16),
+    "sim-open-intensity": ("open", "intensity", 5.0, 0.5, 64),
+    "sim-open-range": ("open", "range", 5.0, 0.5, 64),
+    "sim-open-normals": ("open", "normals", 5.0, 0.5, 64),
 }
 
 
 def sim_table(names: list[str], metrics: list[str]) -> None:
-    """Simulated logs (10 frames, 64 beams x 512 columns, 640x360), exact truth."""
+    """Simulated logs (10 frames, 64 beams unless named x 512 columns, 640x360), exact truth."""
     import tempfile
 
     from pipeline.transforms import rotation_error_deg, translation_error_m
@@ -114,8 +116,8 @@ def sim_table(names: list[str], metrics: list[str]) -> None:
           f"{'runtime_s':>9s} {'box':>9s} viewpoint")
     with tempfile.TemporaryDirectory() as tmp:
         for name in names:
-            scene, feature, deg, metres = SIM_CASES[name]
-            frames, T_init, T_true = simulated_frames(Path(tmp), scene, feature, 10)
+            scene, feature, deg, metres, beams = SIM_CASES[name]
+            frames, T_init, T_true = simulated_frames(Path(tmp), scene, feature, 10, beams)
             for metric in metrics:
                 cfg = CalibrationConfig(metric=metric, search_deg=deg, search_m=metres, repeats=3)
                 result = calibrate(frames, T_init, cfg)

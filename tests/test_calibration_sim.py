@@ -36,12 +36,13 @@ SIM = {"beams": 64, "columns": 512, "width": 640, "height": 360, "perturb_deg": 
        "seed": 1}
 
 
-def simulated_frames(out: Path, scene: str, feature: str, frames: int) -> tuple[
+def simulated_frames(out: Path, scene: str, feature: str, frames: int, beams: int = SIM["beams"]) -> tuple[
         list[CalibrationFrame], NDArray[np.float64], NDArray[np.float64]]:
     """Frames (as the calibrate workflow collects them), the log's tf guess and the true extrinsic."""
-    log = out / f"{scene}.mcap"
+    log = out / (f"{scene}.mcap" if beams == SIM["beams"] else f"{scene}_{beams}beams.mcap")
     if not log.exists():
-        simulate_log(log, SimulationOptions(frames=frames, scene=scene, **SIM))  # type: ignore[arg-type]
+        options = {**SIM, "beams": beams}
+        simulate_log(log, SimulationOptions(frames=frames, scene=scene, **options))  # type: ignore[arg-type]
     truth = load_truth(truth_path_for(log))
     config = Config()
     config.calibration.feature = feature  # type: ignore[assignment]
