@@ -113,7 +113,7 @@ def sim_table(names: list[str], metrics: list[str]) -> None:
     from tests.test_calibration_sim import simulated_frames
 
     print(f"\n{'simulated':18s} {'metric':9s} {'rot_deg':>8s} {'trans_m':>8s} {'score':>8s} {'init':>8s} "
-          f"{'runtime_s':>9s} {'box':>9s} viewpoint")
+          f"{'runtime_s':>9s} {'box':>9s} viewpoint verdict")
     with tempfile.TemporaryDirectory() as tmp:
         for name in names:
             scene, feature, deg, metres, beams = SIM_CASES[name]
@@ -125,7 +125,7 @@ def sim_table(names: list[str], metrics: list[str]) -> None:
                 trans = translation_error_m(result.T_camera_lidar, T_true)
                 print(f"{name:18s} {metric:9s} {rot:8.3f} {trans:8.3f} {result.score:8.4f} "
                       f"{result.initial_score:8.4f} {result.runtime_s:9.1f} {deg:4.0f}/{metres:.1f}m "
-                      f"{result.gradient_viewpoint}", flush=True)
+                      f"{result.gradient_viewpoint:9s} {result.verdict}", flush=True)
 
 
 def seeds_study(n: int) -> None:
@@ -144,7 +144,7 @@ def seeds_study(n: int) -> None:
         good = rot <= 0.3 and trans <= 0.10
         ok += good
         print(f"  seed {seed}: {rot:.3f} deg {trans:.3f} m score {result.score:.4f} "
-              f"runtime {result.runtime_s:.1f} s {'ok' if good else 'FAIL'}", flush=True)
+              f"runtime {result.runtime_s:.1f} s verdict {result.verdict} {'ok' if good else 'FAIL'}", flush=True)
     print(f"  within 0.3 deg / 10 cm: {ok} of {n}")
 
 

@@ -129,7 +129,9 @@ class CalibrationConfig:
         blur_sigma_px: Gaussian blur of camera images before the Sobel, pixels (0: max(2, width / 620)).
         k_neighbours: neighbours for lidar normals and sphere gradients.
         seed: random seed.
-        repeats: seeded optimiser runs; their spread is the reported uncertainty.
+        repeats: seeded optimiser runs; their spread is the reported uncertainty. While no other run
+            lands within 0.5 deg / 15 cm of the best, up to 3 more are made; if none does, the verdict is
+            ``suspect`` (``stages.calibration.CalibrationConfig.confirm_repeats``).
         keep_fraction: GOM only: fraction of in-view points with the largest lidar gradient kept.
         estimate_focal: also estimate a common scale of fx and fy.
         min_points: scans with fewer points are skipped.

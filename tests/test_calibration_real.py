@@ -109,7 +109,8 @@ def test_kitti_from_5deg_50cm_off_in_a_wide_box() -> None:
     """``--initial`` 5 deg / 0.5 m off on a random axis, ``--search-deg 10 --search-m 1``, defaults: lidar
     gradients on the lidar's own sphere (least squares, neighbours across rings) do not depend on the
     initial translation (measured for this seed 0.162 deg / 3.9 cm; 10 of 10 seeds within the bound,
-    0.12-0.18 deg / 3-6 cm, ``bench_gom.py --seeds 10``; the paper's camera sphere: 0 of 10)."""
+    0.12-0.18 deg / 3-6 cm, ``bench_gom.py --seeds 10``; the paper's camera sphere: 0 of 10). Other
+    seeded runs can land in other optima; the best is confirmed by at least one."""
     log_path("kitti_2011_09_26.mcap")
     problem = load_real_frames("kitti_2011_09_26.mcap")
     T_start = perturb(problem.T_true, 5.0, 0.5, seed=100)
@@ -121,6 +122,7 @@ def test_kitti_from_5deg_50cm_off_in_a_wide_box() -> None:
     rot, trans = errors(result.T_camera_lidar, problem.T_true)
     assert rot <= 0.3, f"rotation error {rot:.3f} deg"
     assert trans <= 0.10, f"translation error {trans:.3f} m"
+    assert result.verdict == "recalibrated" and result.agreeing_repeats >= 1  # another seeded run confirms it
 
 
 def test_kitti_search_box_away_from_the_scan_is_a_clear_error() -> None:

@@ -28,6 +28,7 @@ from pipeline.transforms import rotation_error_deg, translation_error_m
 from readers.frames import load_tf_tree
 from readers.open import open_log
 from stages.calibration import CalibrationConfig, CalibrationFrame, calibrate
+from tests.test_calibration_synthetic import perturb
 from workflows.calibrate import collect_frames, initial_guess
 from workflows.simulator.truth import load_truth, truth_path_for
 from workflows.simulator.write import SimulationOptions, simulate_log
@@ -127,3 +128,20 @@ def test_open_scene_geometric_features(sim_dir: Path, feature: str) -> None:
     result = calibrate(frames, T_init, CalibrationConfig())
     assert rotation_error_deg(result.T_camera_lidar, T_true) <= 0.5
     assert translation_error_m(result.T_camera_lidar, T_true) <= 0.1
+
+
+@pytest.mark.slow
+def test_sparse_lidar_estimate_is_within_bounds_or_flagged(sim_dir: Path) -> None:
+    """A 16-beam lidar (rings 2 deg apart, columns 0.7 deg) leaves GOM's lidar gradients too coarse: from a
+    drifted 2 deg / 10 cm start the estimate is 1.92 deg / 88 cm off and none of the 5 other seeded runs
+    lands within 0.5 deg / 15 cm of it (their spread 3.2 deg / 1.2 m). The estimate must be within
+    0.5 deg / 15 cm or carry the verdict ``suspect``: never a confident wrong calibration (3 repeats,
+    up to 3 more while unconfirmed)."""
+    frames, _, T_true = simulated_frames(sim_dir, "street", "intensity", 10, beams=16)
+    T_init = perturb(T_true, 2.0, 0.1, seed=7)
+    result = calibrate(frames, T_init, CalibrationConfig(repeats=3))
+    rot = rotation_error_deg(result.T_camera_lidar, T_true)
+    trans = translation_error_m(result.T_camera_lidar, T_true)
+    within = rot <= 0.5 and trans <= 0.15
+    assert within or result.verdict == "suspect", f"{rot:.2f} deg / {trans:.3f} m but {result.verdict}"
+    assert result.verdict != "suspect" or result.verdict_reason

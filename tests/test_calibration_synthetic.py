@@ -27,7 +27,7 @@ from pipeline.transforms import (
     translation_error_m,
 )
 from stages.calibration import CalibrationConfig, CalibrationFrame, calibrate, compensate_ego_motion
-from stages.calibration.calibrator import default_blur_sigma_px
+from stages.calibration.calibrator import agreeing_repeats, default_blur_sigma_px
 from stages.image_gradients import ImageGradients, compute_image_gradients
 from stages.lidar_features import compute_lidar_feature
 
@@ -204,6 +204,19 @@ def test_initial_guess_at_truth_is_confirmed(frame: CalibrationFrame) -> None:
     assert result.score >= result.initial_score
     assert 0.0 <= result.rotation_std_deg < 0.2  # two seeded runs agree
     assert 0.0 <= result.translation_std_m < 0.03
+    assert result.agreeing_repeats == 1 and result.verdict_reason == ""
+
+
+def test_agreeing_repeats_counts_runs_near_the_best() -> None:
+    T_best = true_T_camera_lidar()
+    runs = [T_best,
+            from_xyz_rpy(0.05, 0.0, 0.0, 0.3, 0.0, 0.0) @ T_best,   # 0.3 deg / 5 cm: agrees
+            from_xyz_rpy(0.0, 0.0, 0.4, 0.0, 0.0, 0.0) @ T_best,    # 40 cm away along the optical axis
+            from_xyz_rpy(0.0, 0.0, 0.0, 0.0, 2.0, 0.0) @ T_best]    # 2 deg away
+    assert agreeing_repeats(runs, 0, 0.5, 0.15) == 1
+    assert agreeing_repeats(runs, 2, 0.5, 0.15) == 0
+    assert agreeing_repeats(runs, 0, 3.0, 0.5) == 3
+    assert agreeing_repeats(runs[:1], 0, 0.5, 0.15) == 0
 
 
 def test_image_without_structure_is_suspect(frame: CalibrationFrame) -> None:

@@ -104,5 +104,8 @@ def run(args: argparse.Namespace) -> int:
                  f"{s['change_deg']:.2f}", f"{100 * s['change_m']:.1f}", f"{p.result.runtime_s:.1f}"]
                 for p, s in ((p, p.summary()) for p in pairs)]  # fmt: skip
         print(table(rows, ["camera", "verdict", "initial", "score", "change deg", "change cm", "time s"]))
+        for p in pairs:
+            if p.result.verdict_reason:
+                print(f"{p.camera_topic}: suspect: {p.result.verdict_reason}")
         print(f"wrote {out_dir}/calibration.parquet, frames.parquet, report/", file=sys.stderr)
     return 0
