@@ -129,9 +129,10 @@ class CalibrationConfig:
         blur_sigma_px: Gaussian blur of camera images before the Sobel, pixels (0: max(2, width / 620)).
         k_neighbours: neighbours for lidar normals and sphere gradients.
         seed: random seed.
-        repeats: seeded optimiser runs; their spread is the reported uncertainty. While no other run
-            lands within 0.5 deg / 15 cm of the best, up to 3 more are made; if none does, the verdict is
-            ``suspect`` (``stages.calibration.CalibrationConfig.confirm_repeats``).
+        repeats: seeded optimiser runs; their spread is the reported uncertainty.
+        confirm_repeats: while no other run lands within 0.5 deg / 15 cm of the best, up to this many
+            more are made (they only confirm it); if none does, the verdict is ``suspect``. 0 bounds the
+            runtime of batch jobs at ``repeats`` runs.
         keep_fraction: GOM only: fraction of in-view points with the largest lidar gradient kept.
         estimate_focal: also estimate a common scale of fx and fy.
         min_points: scans with fewer points are skipped.
@@ -159,6 +160,7 @@ class CalibrationConfig:
     k_neighbours: int = 8
     seed: int = 0
     repeats: int = 3
+    confirm_repeats: int = 3
     keep_fraction: float = 0.5
     estimate_focal: bool = False
     min_points: int = 100
@@ -178,6 +180,7 @@ class CalibrationConfig:
         _require(self.blur_sigma_px >= 0, "calibration.blur_sigma_px", "must be >= 0")
         _require(self.k_neighbours >= 2, "calibration.k_neighbours", "must be >= 2")
         _require(self.repeats >= 1, "calibration.repeats", "must be >= 1")
+        _require(self.confirm_repeats >= 0, "calibration.confirm_repeats", "must be >= 0")
         _require(0 < self.keep_fraction <= 1, "calibration.keep_fraction", "must be in (0, 1]")
         _require(self.min_points >= 0, "calibration.min_points", "must be >= 0")
 

@@ -66,6 +66,7 @@ def test_precedence_file_then_env_then_cli(tmp_path: Path) -> None:
         ({"FLEETCAL_IO__ALLOW_TRUNCATED": "maybe"}, r"io\.allow_truncated.*boolean"),
         ({"FLEETCAL_MAPPING__VOXEL_M": "nan"}, r"mapping\.voxel_m.*finite"),
         ({"FLEETCAL_CALIBRATION__PARTICLES": "0"}, r"calibration\.particles: must be >= 1"),
+        ({"FLEETCAL_CALIBRATION__CONFIRM_REPEATS": "-1"}, r"calibration\.confirm_repeats: must be >= 0"),
     ],
 )
 def test_bad_environment_values_name_the_key(env: dict[str, str], match: str) -> None:
@@ -178,3 +179,11 @@ def test_gradient_settings_follow_the_viewpoint() -> None:
     assert (solver.viewpoint, solver.fit, solver.neighbours_on("camera")) == ("camera", "lsq", "sampling")
     with pytest.raises(ConfigError, match="neighbours_by"):
         replace(solver, neighbours_by="rings").validate()
+
+
+def test_confirm_repeats_reaches_the_solver() -> None:
+    from workflows.calibrate import solver_config
+
+    assert solver_config(Config()).confirm_repeats == 3
+    config = load_config(env={"FLEETCAL_CALIBRATION__CONFIRM_REPEATS": "0"})
+    assert solver_config(config).confirm_repeats == 0

@@ -113,6 +113,7 @@ def solver_config(config: Config) -> SolverConfig:
         max_iterations=c.iterations,
         seed=c.seed,
         repeats=c.repeats,
+        confirm_repeats=c.confirm_repeats,
         keep_fraction=c.keep_fraction,
         sphere_k=c.k_neighbours,
         estimate_focal=c.estimate_focal,

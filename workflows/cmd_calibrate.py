@@ -52,6 +52,8 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--particles", type=int, metavar="N", help="particle swarm size (default 200)")
     p.add_argument("--seed", type=int, help="random seed")
     p.add_argument("--repeats", type=int, metavar="N", help="seeded runs; their spread is the uncertainty")
+    p.add_argument("--confirm-repeats", type=int, metavar="N",
+                   help="extra seeded runs while none confirms the best (default 3; 0: none)")
     p.add_argument("--allow-truncated", action="store_true", help="use what is intact of a truncated log")
     p.add_argument("--no-report", action="store_true", help="skip the report PNGs")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
@@ -68,6 +70,7 @@ def overrides(args: argparse.Namespace) -> dict[str, Any]:
         "calibration.particles": args.particles,
         "calibration.seed": args.seed,
         "calibration.repeats": args.repeats,
+        "calibration.confirm_repeats": args.confirm_repeats,
         "calibration.gradient_viewpoint": args.gradient_viewpoint,
         "calibration.gradient_fit": args.gradient_fit,
         "calibration.gradient_neighbours": args.gradient_neighbours,
