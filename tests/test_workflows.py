@@ -179,6 +179,7 @@ def test_calibrate_kitti_from_log_tf(shared_data: Path, tmp_path: Path, capsys: 
     assert rotation_error_deg(T, np.asarray(truth["T_camera_lidar"])) <= 0.3
     assert translation_error_m(T, np.asarray(truth["T_camera_lidar"])) <= 0.10
     assert result["pairs"][0]["verdict"] == "recalibrated"
+    assert result["pairs"][0]["verdict_reason"] == "" and result["pairs"][0]["agreeing_repeats"] >= 1
 
 
 def test_calibrate_nuscenes_joint_with_ego_motion(
