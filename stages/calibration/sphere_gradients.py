@@ -114,14 +114,18 @@ def sphere_neighbours(sphere_uv: NDArray[np.float64], k: int = 8, polar_scale: f
     return np.ascontiguousarray(out)
 
 
+def _neighbours_by(sphere_uv: NDArray[np.float64], k: int, neighbours_by: str) -> NDArray[np.int64]:
+    """``sphere_neighbours`` by ``angle`` or by ``sampling`` (polar angle scaled by ``sampling_aspect``)."""
+    return sphere_neighbours(sphere_uv, k, sampling_aspect(sphere_uv) if neighbours_by == "sampling" else 1.0)
+
+
 def camera_sphere_neighbours(points_xyz: NDArray[np.floating], T_camera_lidar: NDArray[np.float64],
                              k: int = 8, neighbours_by: str = "angle") -> NDArray[np.int64]:
     """(N, k) sphere neighbours of lidar points (lidar frame, metres) on the sphere centred at the camera
     of ``T_camera_lidar`` (``neighbours_by`` as in ``compute_sphere_gradients``); shared by every feature
     channel of a frame and by Levinson's depth jumps."""
     sphere_uv = sphere_coordinates(apply(T_camera_lidar, np.asarray(points_xyz, dtype=np.float64)))
-    scale = sampling_aspect(sphere_uv) if neighbours_by == "sampling" else 1.0
-    return sphere_neighbours(sphere_uv, k, scale)
+    return _neighbours_by(sphere_uv, k, neighbours_by)
 
 
 def compute_sphere_gradients(points_xyz: NDArray[np.floating], values: NDArray[np.floating],
@@ -151,8 +155,7 @@ def compute_sphere_gradients(points_xyz: NDArray[np.floating], values: NDArray[n
         raise ProcessingError("lidar points or feature values contain NaN or infinity")
     sphere_uv = sphere_coordinates(apply(T_camera_lidar, pts))
     if neighbours is None:
-        scale = sampling_aspect(sphere_uv) if neighbours_by == "sampling" else 1.0
-        neighbours = sphere_neighbours(sphere_uv, k, scale)
+        neighbours = _neighbours_by(sphere_uv, k, neighbours_by)
     elif neighbours.shape != (pts.shape[0], k):
         raise ProcessingError(f"neighbours {neighbours.shape} do not match {pts.shape[0]} points x k={k}")
     if fit == "lsq":
