@@ -586,20 +586,18 @@ def _flat(problem: CalibrationProblem, x_best: NDArray[np.float64], best: float,
 
 @dataclass
 class _Run:
+    """One seeded swarm + polish run: its best score, parameters, extrinsic and iterations."""
+
     score: float
     x: NDArray[np.float64]
-    problem: CalibrationProblem
+    T_camera_lidar: Mat4
     iterations: int
-
-    @property
-    def T_camera_lidar(self) -> Mat4:
-        return self.problem.T_camera_lidar(self.x)
 
 
 def _best_of(problem: CalibrationProblem, seed: int) -> _Run:
     swarm, polish = problem.optimise(seed)
     best = polish if polish is not None else swarm
-    return _Run(best.best_score, best.best_x, problem,
+    return _Run(best.best_score, best.best_x, problem.T_camera_lidar(best.best_x),
                 swarm.iterations + (polish.iterations if polish is not None else 0))
 
 
@@ -654,8 +652,8 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         runs.append(_best_of(problem, cfg.seed + len(runs)))
     runtime = time.perf_counter() - start
     best_run = runs[best_index]
-    score, x_best, iterations, best_problem = best_run.score, best_run.x, best_run.iterations, best_run.problem
-    final_scores, counts = best_problem.frame_scores(x_best[None])
+    score, x_best, iterations = best_run.score, best_run.x, best_run.iterations
+    final_scores, counts = problem.frame_scores(x_best[None])
     if int(counts.sum()) < cfg.min_points:
         raise ProcessingError(
             f"the camera sees {int(counts.sum())} lidar points at the best pose in the search box "
@@ -668,7 +666,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         trans_std = float(np.sqrt(np.mean([translation_error_m(T, T_best) ** 2 for T in Ts])))
     agreeing = _agreeing(runs, best_index, cfg)
     chance = {"gom": 0.5, "nmi": 1.0, "levinson": 0.0}[cfg.metric]
-    flat = _flat(best_problem, x_best, score, chance)
+    flat = _flat(problem, x_best, score, chance)
     initial_score = float(init_scores.mean())
     moved = (rotation_error_deg(T_best, problem.T_init) > cfg.ok_rotation_deg
              or translation_error_m(T_best, problem.T_init) > cfg.ok_translation_m)
@@ -687,12 +685,11 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         verdict = "recalibrated"
     else:
         verdict = "ok"
-    evaluations = problem.evaluations
     return CalibrationResult(
         T_camera_lidar=T_best, T_camera_lidar_initial=problem.T_init.copy(), score=float(score),
         initial_score=initial_score, frame_scores=final_scores[0], frame_initial_scores=init_scores[0],
-        frames_used=len(frames), points_used=list(best_problem.points_used), runtime_s=runtime,
-        iterations=iterations, evaluations=evaluations, verdict=verdict, verdict_reason=reason, flat=flat,
+        frames_used=len(frames), points_used=list(problem.points_used), runtime_s=runtime,
+        iterations=iterations, evaluations=problem.evaluations, verdict=verdict, verdict_reason=reason, flat=flat,
         rotation_std_deg=rot_std, translation_std_m=trans_std, agreeing_repeats=agreeing,
         focal_scale=float(x_best[6]) if x_best.size > 6 else 1.0, metric=cfg.metric,
         gradient_viewpoint=cfg.viewpoint)
