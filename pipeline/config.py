@@ -147,6 +147,9 @@ class CalibrationConfig:
             ``auto`` (lsq on the lidar's sphere, paper on the camera's).
         gradient_neighbours: ``angle`` (paper), ``sampling`` (neighbours across a sparse lidar's rings) or
             ``auto`` (sampling on the lidar's sphere, angle on the camera's).
+        explore: GOM swarm's first 30 iterations against image gradients blurred 3x more (wider basins):
+            ``on``, ``off`` or ``auto`` (default: on for boxes wider than 0.5 m); evidence in
+            ``stages.calibration.calibrator.CalibrationConfig``.
     """
 
     metric: Literal["gom", "nmi", "levinson"] = "gom"
@@ -169,6 +172,7 @@ class CalibrationConfig:
     gradient_viewpoint: Literal["auto", "camera", "lidar"] = "auto"
     gradient_fit: Literal["auto", "paper", "lsq"] = "auto"
     gradient_neighbours: Literal["auto", "angle", "sampling"] = "auto"
+    explore: Literal["auto", "on", "off"] = "auto"
 
     def validate(self) -> None:
         feature_names(self.feature)

@@ -83,17 +83,22 @@ def test_street_intensity_recovers_extrinsic_from_5deg_50cm(sim_dir: Path) -> No
 
 def test_street_wide_box_reaches_the_issue_target_from_5deg_50cm(sim_dir: Path) -> None:
     """From 5 deg / 0.5 m off with a box that holds such an error (10 deg / 1 m, as on KITTI), the auto
-    settings take lidar gradients on the lidar's own sphere with the least-squares fit: the street
-    target of 0.1 deg / 2 cm (measured 0.060 deg / 1.0 cm; Algorithm 1's fit there 0.123 deg / 0.4 cm;
-    the camera-centred sphere in the default 5 deg / 0.5 m box 0.249 deg / 1.0 cm)."""
+    settings take lidar gradients on the lidar's own sphere with the least-squares fit, and the swarm
+    first explores against image gradients blurred 3x more (``CalibrationConfig.explore``): the street
+    target of 0.1 deg / 2 cm, confirmed by another seeded run (measured 0.049 deg / 0.9 cm, 2 of the 3
+    runs agree). Without exploring 1 of 6 seeded runs found the global optimum (the others stopped at
+    3-10 deg / 0.5-1 m, scores 0.666-0.707 vs 0.750) and the estimate (0.060 deg / 1.0 cm) was
+    ``suspect``. Algorithm 1's fit instead of lsq: 0.123 deg / 0.4 cm; the camera-centred sphere in the
+    default 5 deg / 0.5 m box 0.249 deg / 1.0 cm."""
     frames, T_init, T_true = simulated_frames(sim_dir, "street", "intensity", 10)
-    config = CalibrationConfig(search_deg=10.0, search_m=1.0)
-    assert (config.viewpoint, config.fit) == ("lidar", "lsq")
+    config = CalibrationConfig(search_deg=10.0, search_m=1.0, repeats=3)
+    assert (config.viewpoint, config.fit, config.explores) == ("lidar", "lsq", True)
+    assert not CalibrationConfig().explores
     result = calibrate(frames, T_init, config)
-    rot = rotation_error_deg(result.T_camera_lidar, T_true)
-    trans = translation_error_m(result.T_camera_lidar, T_true)
-    assert rot <= 0.1, f"rotation error {rot:.3f} deg"
-    assert trans <= 0.02, f"translation error {trans:.3f} m"
+    assert result.verdict == "recalibrated", result.verdict_reason
+    assert result.agreeing_repeats >= 1
+    assert rotation_error_deg(result.T_camera_lidar, T_true) <= 0.1
+    assert translation_error_m(result.T_camera_lidar, T_true) <= 0.02
 
 
 # Open yard (painted ground, a few cars, terraces whose creases are edges of surface orientation with

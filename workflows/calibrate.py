@@ -121,6 +121,7 @@ def solver_config(config: Config) -> SolverConfig:
         gradient_viewpoint=c.gradient_viewpoint,
         gradient_fit=c.gradient_fit,
         neighbours_by=c.gradient_neighbours,
+        explore=c.explore,
     )
 
 

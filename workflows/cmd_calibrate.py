@@ -47,6 +47,9 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--gradient-neighbours", choices=["auto", "angle", "sampling"],
                    help="sphere neighbours: nearest by angle (paper) or across rings too; auto (default): "
                         "across rings with the lidar viewpoint")
+    p.add_argument("--explore", choices=["auto", "on", "off"],
+                   help="GOM swarm explores on image gradients blurred 3x more for its first 30 iterations; "
+                        "auto (default): on for --search-m above 0.5")
     p.add_argument("--no-motion-compensation", action="store_true", help="ignore /tf odometry")
     p.add_argument("--estimate-focal", action="store_true", help="also estimate a focal length scale")
     p.add_argument("--particles", type=int, metavar="N", help="particle swarm size (default 200)")
@@ -72,6 +75,7 @@ def overrides(args: argparse.Namespace) -> dict[str, Any]:
         "calibration.repeats": args.repeats,
         "calibration.confirm_repeats": args.confirm_repeats,
         "calibration.gradient_viewpoint": args.gradient_viewpoint,
+        "calibration.explore": args.explore,
         "calibration.gradient_fit": args.gradient_fit,
         "calibration.gradient_neighbours": args.gradient_neighbours,
         "calibration.estimate_focal": True if args.estimate_focal else None,

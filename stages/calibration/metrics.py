@@ -11,6 +11,7 @@ candidate extrinsics in one numba call (parallel over poses). Higher is better f
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 from typing import Literal
 
@@ -159,6 +160,19 @@ class GomScorer:
         self.cam = camera_params(camera)
         self.R_gradients = None if R_camera_lidar_gradients is None else np.asarray(
             R_camera_lidar_gradients, dtype=np.float64).reshape(3, 3)
+
+    def blurred(self, sigma_px: float, stride: int = 1) -> GomScorer:
+        """This scorer against image gradients smoothed by a further Gaussian of ``sigma_px`` pixels (the
+        gradients of the image blurred by it: both are linear filters), on every ``stride``-th point."""
+        twin = copy.copy(self)
+        if stride > 1:
+            twin.points = np.ascontiguousarray(self.points[::stride])
+            twin.c2 = np.ascontiguousarray(self.c2[::stride])
+            twin.s2 = np.ascontiguousarray(self.s2[::stride])
+            twin.magnitude = np.ascontiguousarray(self.magnitude[::stride])
+        twin.planes = np.ascontiguousarray(np.stack(
+            [cv2.GaussianBlur(self.planes[:, :, c], (0, 0), sigma_px) for c in range(2)], axis=2))
+        return twin
 
     def score(self, T_camera_lidar_batch: NDArray[np.floating],
               focal_scale: NDArray[np.floating] | None = None) -> MetricBatch:

@@ -48,7 +48,8 @@ def particle_swarm(objective: BatchObjective, lower: NDArray[np.floating], upper
                    min_iterations: int = 20, score_tolerance: float = 1e-6, spread_tolerance: float = 1e-3,
                    seed: int = 0,
                    inertia: float = 0.7298, cognitive: float = 1.49618, social: float = 1.49618,
-                   x_initial: NDArray[np.floating] | None = None) -> SwarmResult:
+                   x_initial: NDArray[np.floating] | None = None,
+                   explore_objective: BatchObjective | None = None, explore_iterations: int = 0) -> SwarmResult:
     """Maximise ``objective`` in the box [lower, upper] with a global-best particle swarm.
 
     Particles start uniformly in the box (plus ``x_initial`` as particle 0 when given), velocities
@@ -57,6 +58,9 @@ def particle_swarm(objective: BatchObjective, lower: NDArray[np.floating], upper
     ``score_tolerance`` for ``stall_iterations`` iterations, or when the swarm's spread (largest
     per-dimension std over box size) is below ``spread_tolerance`` (either only after
     ``min_iterations``), or after ``max_iterations``.
+    With ``explore_objective`` the swarm first flies ``explore_iterations`` iterations on it (e.g. a
+    smoother version of ``objective`` with wider basins), then every particle's best position is
+    re-scored with ``objective`` and the swarm flies on; the stopping rule starts counting then.
     Deterministic for a given ``seed``.
     """
     lo = np.asarray(lower, dtype=np.float64)
@@ -64,6 +68,11 @@ def particle_swarm(objective: BatchObjective, lower: NDArray[np.floating], upper
     _check_box(lo, hi)
     if n_particles < 2 or max_iterations < 1:
         raise ConfigError("particle swarm needs at least 2 particles and 1 iteration")
+    exploring = explore_objective is not None and explore_iterations > 0
+    if exploring and explore_iterations >= max_iterations:
+        raise ConfigError("explore_iterations must be below max_iterations")
+    current = explore_objective if exploring and explore_objective is not None else objective
+    first_counted = explore_iterations if exploring else 0  # the stopping rule starts here
     rng = np.random.default_rng(seed)
     dim = lo.size
     span = hi - lo
@@ -72,7 +81,7 @@ def particle_swarm(objective: BatchObjective, lower: NDArray[np.floating], upper
         x[0] = np.clip(np.asarray(x_initial, dtype=np.float64), lo, hi)
     v = (rng.random((n_particles, dim)) - 0.5) * span * 0.2
     v_max = 0.5 * span
-    f = np.asarray(objective(x), dtype=np.float64)
+    f = np.asarray(current(x), dtype=np.float64)
     evaluations = n_particles
     p_best, f_best = x.copy(), f.copy()
     g = int(np.argmax(f_best))
@@ -83,12 +92,19 @@ def particle_swarm(objective: BatchObjective, lower: NDArray[np.floating], upper
     iterations = 0
     for _ in range(max_iterations):
         iterations += 1
+        if exploring and iterations == explore_iterations:
+            current = objective
+            f_best = np.asarray(objective(p_best), dtype=np.float64)
+            evaluations += n_particles
+            g = int(np.argmax(f_best))
+            g_x, g_f = p_best[g].copy(), float(f_best[g])
+            stall = 0
         phi1 = rng.random((n_particles, dim))
         phi2 = rng.random((n_particles, dim))
         v = inertia * v + cognitive * phi1 * (p_best - x) + social * phi2 * (g_x - x)
         v = np.clip(v, -v_max, v_max)
         x = np.clip(x + v, lo, hi)
-        f = np.asarray(objective(x), dtype=np.float64)
+        f = np.asarray(current(x), dtype=np.float64)
         evaluations += n_particles
         better = f > f_best
         p_best[better] = x[better]
@@ -102,7 +118,8 @@ def particle_swarm(objective: BatchObjective, lower: NDArray[np.floating], upper
             g_x, g_f = p_best[g].copy(), float(f_best[g])
         history.append(g_f)
         spread = float(np.max(np.std(x, axis=0) / span))
-        if iterations >= min_iterations and (stall >= stall_iterations or spread < spread_tolerance):
+        settled = stall >= stall_iterations or spread < spread_tolerance
+        if iterations >= max(min_iterations, first_counted) and settled:
             converged = True
             break
     return SwarmResult(g_x, g_f, iterations, evaluations, converged, history)
