@@ -211,7 +211,8 @@ class CalibrationConfig:
             they are (the removed coarse-to-fine schedule shrank the box around a blurred optimum).
             ``on``, ``off`` or ``auto`` (default): on when ``search_m`` > ``auto_lidar_viewpoint_above_m``
             (a wide box: a far start with several optima in it). Evidence, box 10 deg / 1 m: KITTI from
-            5 deg / 0.5 m (seed 7's start) 5 of 6 seeded runs in the truth's basin vs 3 of 6; 10 of 10
+            5 deg / 0.5 m, seeded runs in the truth's basin: seed 7's start 5 of 6 vs 3 of 6, seed 2's
+            6 of 6 vs 3 of 6; 10 of 10
             seeds within 0.3 deg / 10 cm either way, 25-44 s per seed vs 35-56 s (fewer confirming runs
             needed); simulated street (64 beams) 3 of 3 runs vs 1 of 6, ``recalibrated`` 0.049 deg /
             0.9 cm in 27 s vs ``suspect`` 0.060 / 1.0 in 75 s; 32 beams 0.75 deg / 22 cm either way;
