@@ -5,7 +5,7 @@ against a 1242x375 image, (2) a table of rotation / translation error vs the ``.
 reference and runtime for every available real log x {gom, nmi, levinson} with the workflow's
 defaults (``fleetcal calibrate``: range+normals, 3 seeded repeats), and (3) with
 ``--seeds N`` the KITTI robustness study: starts 5 deg / 0.5 m off on random axes, search 10 deg / 1 m
-(the auto gradient viewpoint then takes the lidar's own sphere).
+(the auto gradient viewpoint then takes the lidar's own sphere and the swarm explores first).
 
     .venv/bin/python benchmarks/bench_gom.py [--seeds 10] [--logs kitti pjlab nuscenes] [--skip-table]
         [--sim [sim-street sim-open-normals ...]]   (simulated logs with exact truth; alone: all)

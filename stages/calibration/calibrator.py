@@ -18,7 +18,8 @@ bound; ``gradient_viewpoint='auto'`` takes them whenever the translation box is 
 (see ``CalibrationConfig.gradient_viewpoint``). A coarse-to-fine schedule (whole box against image
 gradients blurred 4x, then a 2 deg / 0.2 m box re-linearised at its optimum) hurt every case measured
 (KITTI from tf 1.11 deg / 18 cm vs 0.14 / 8; simulated street 640x360 intensity 0.53 deg / 8.3 cm vs
-0.25 / 1.0) and was removed.
+0.25 / 1.0) and was removed. What wide boxes do get is a first swarm phase against blurred image
+gradients in the same box, with the same lidar gradients (``CalibrationConfig.explore``).
 """
 
 from __future__ import annotations
