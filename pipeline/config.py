@@ -140,15 +140,15 @@ class CalibrationConfig:
         occlusion_filter: drop lidar points hidden from the camera at the initial guess (z-buffer).
         gradient_viewpoint: where lidar gradients are taken: ``camera`` (paper: sphere at the camera at
             the initial guess), ``lidar`` (the lidar's own sphere, edge directions carried into the
-            camera's view) or ``auto`` (default: camera while ``search_m`` <= 0.5 m, lidar for wider
-            boxes or rings too sparse for the camera sphere); evidence in
+            camera's view) or ``auto`` (default: camera while the box is within 5 deg / 0.5 m,
+            lidar for wider boxes or rings too sparse for the camera sphere); evidence in
             ``stages.calibration.calibrator.CalibrationConfig``.
         gradient_fit: ``paper`` (Algorithm 1), ``lsq`` (least-squares gradient over the neighbours) or
             ``auto`` (lsq on the lidar's sphere, paper on the camera's).
         gradient_neighbours: ``angle`` (paper), ``sampling`` (neighbours across a sparse lidar's rings) or
             ``auto`` (sampling on the lidar's sphere, angle on the camera's).
         explore: GOM swarm's first 30 iterations against image gradients blurred 3x more (wider basins):
-            ``on``, ``off`` or ``auto`` (default: on for boxes wider than 0.5 m); evidence in
+            ``on``, ``off`` or ``auto`` (default: on for boxes wider than 5 deg or 0.5 m); evidence in
             ``stages.calibration.calibrator.CalibrationConfig``.
     """
 

@@ -40,8 +40,8 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--gradient-viewpoint", choices=["auto", "camera", "lidar"],
                    help="lidar gradients on the camera's sphere at the initial guess (paper) or on the lidar's own, "
-                        "carried to the camera; auto (default): camera up to --search-m 0.5, lidar beyond or for "
-                        "sparse-ring lidars")
+                        "carried to the camera; auto (default): camera up to --search-deg 5 and --search-m 0.5, "
+                        "lidar beyond or for sparse-ring lidars")
     p.add_argument("--gradient-fit", choices=["auto", "paper", "lsq"],
                    help="lidar gradient: Algorithm 1 or least squares; auto (default): lsq with the lidar viewpoint")
     p.add_argument("--gradient-neighbours", choices=["auto", "angle", "sampling"],
@@ -49,7 +49,7 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
                         "across rings with the lidar viewpoint")
     p.add_argument("--explore", choices=["auto", "on", "off"],
                    help="GOM swarm explores on image gradients blurred 3x more for its first 30 iterations; "
-                        "auto (default): on for --search-m above 0.5")
+                        "auto (default): on for --search-deg above 5 or --search-m above 0.5")
     p.add_argument("--no-motion-compensation", action="store_true", help="ignore /tf odometry")
     p.add_argument("--estimate-focal", action="store_true", help="also estimate a focal length scale")
     p.add_argument("--particles", type=int, metavar="N", help="particle swarm size (default 200)")

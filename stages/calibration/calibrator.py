@@ -177,8 +177,9 @@ class CalibrationConfig:
             capture, where neighbours never straddle a depth edge and rings / columns are exact), the
             edge direction stepped along the point's surface and carried into the camera view with
             parallax; it does not depend on the initial translation. ``auto`` (default): ``camera``
-            while ``search_m`` <= ``auto_lidar_viewpoint_above_m`` (the initial translation is trusted,
-            e.g. a drifted factory calibration), ``lidar`` for wider boxes, and ``lidar`` as well when
+            while the box is not wider than ``auto_lidar_viewpoint_above_deg`` / ``_m`` (the initial
+            guess is trusted, e.g. a drifted factory calibration), ``lidar`` for wider boxes
+            (``wide_box``), and ``lidar`` as well when
             the scan's rings are too sparse for the camera sphere (``calibrate`` applies
             ``resolve_viewpoint``: fewer than 2 of 8 sphere neighbours on other rings). Evidence
             (range+normals, 3 repeats, lidar view with the auto fit and neighbours vs camera view) from
@@ -189,8 +190,11 @@ class CalibrationConfig:
             KITTI starts 5 deg / 0.5 m off, box 10 deg / 1 m: 10 of 10 seeds within 0.3 deg / 10 cm
             (0.12-0.18 deg / 3-6 cm) vs 0 of 10 (``bench_gom.py --seeds 10``). Neither view wins
             everywhere; the camera view is never far off from a close start, the lidar view is the one
-            that survives a far start.
-        auto_lidar_viewpoint_above_m: the ``auto`` rule's threshold on ``search_m``.
+            that survives a far start. A box wide in rotation only (KITTI, 5 seeds from 5 deg / 10 cm
+            off, box 10 deg / 0.5 m): camera view 2 of 5 within 0.3 deg / 10 cm (up to 2.2 deg / 63 cm),
+            lidar view 5 of 5 (0.09-0.23 deg / 3-7 cm).
+        auto_lidar_viewpoint_above_deg, auto_lidar_viewpoint_above_m: a box wider than either (``search_deg``
+            or ``search_m``) is wide: the ``auto`` viewpoint and exploration then apply.
         gradient_fit: ``paper`` (Algorithm 1, ``sum dv dx``) or ``lsq`` (least-squares gradient over the
             K neighbours; unbiased when rings are further apart than columns, see ``sphere_kernels``), or
             ``auto`` (default): ``lsq`` with the lidar viewpoint, ``paper`` with the camera's. Lidar
@@ -210,8 +214,8 @@ class CalibrationConfig:
             ``explore_stride``-th point; then every particle's best is re-scored on the real objective
             and the swarm flies on (``pso.particle_swarm``). The box and the lidar gradients stay as
             they are (the removed coarse-to-fine schedule shrank the box around a blurred optimum).
-            ``on``, ``off`` or ``auto`` (default): on when ``search_m`` > ``auto_lidar_viewpoint_above_m``
-            (a wide box: a far start with several optima in it). Evidence, box 10 deg / 1 m: KITTI from
+            ``on``, ``off`` or ``auto`` (default): on in a ``wide_box`` (a far start with several optima
+            in it). Evidence, box 10 deg / 1 m: KITTI from
             5 deg / 0.5 m, seeded runs in the truth's basin: seed 7's start 5 of 6 vs 3 of 6, seed 2's
             6 of 6 vs 3 of 6; 10 of 10
             seeds within 0.3 deg / 10 cm either way, 25-44 s per seed vs 35-56 s (fewer confirming runs
@@ -262,6 +266,7 @@ class CalibrationConfig:
     occlusion_rel_tol: float = 0.1
     occlusion_abs_tol_m: float = 0.1
     gradient_viewpoint: str = "auto"
+    auto_lidar_viewpoint_above_deg: float = 5.0
     auto_lidar_viewpoint_above_m: float = 0.5
     gradient_fit: str = "auto"
     neighbours_by: str = "auto"
@@ -278,11 +283,17 @@ class CalibrationConfig:
         return 1e-4 if self.metric == "gom" else 1e-5
 
     @property
+    def wide_box(self) -> bool:
+        """Whether the search box is wider than the auto rules' thresholds in rotation or translation."""
+        return (self.search_deg > self.auto_lidar_viewpoint_above_deg
+                or self.search_m > self.auto_lidar_viewpoint_above_m)
+
+    @property
     def explores(self) -> bool:
         """Whether the swarm first explores on blurred image gradients (``explore`` resolved)."""
         if self.metric != "gom" or self.explore == "off" or self.explore_phase_iterations < 1:
             return False
-        return self.explore == "on" or self.search_m > self.auto_lidar_viewpoint_above_m
+        return self.explore == "on" or self.wide_box
 
     @property
     def explore_phase_iterations(self) -> int:
@@ -295,7 +306,7 @@ class CalibrationConfig:
         """The gradient viewpoint in force: ``gradient_viewpoint`` with ``auto`` resolved by the box."""
         if self.gradient_viewpoint != "auto":
             return self.gradient_viewpoint
-        return "lidar" if self.search_m > self.auto_lidar_viewpoint_above_m else "camera"
+        return "lidar" if self.wide_box else "camera"
 
     def neighbours_on(self, sphere: str) -> str:
         """The sphere-neighbour rule in force on the ``camera`` or ``lidar`` sphere (``auto``: sampling
