@@ -195,13 +195,16 @@ def test_pjlab_rig2_single_raw_frame_of_another_rig() -> None:
 def test_nuscenes_six_cameras_joint_with_ego_motion() -> None:
     """Workflow defaults. The 32-beam lidar's points have about one of their 8 nearest sphere neighbours
     on another ring, so ``auto`` takes the lidar viewpoint with neighbours across rings: measured
-    0.53 deg (range alone 0.51; the paper's camera sphere: 1.52, range 0.37)."""
+    0.53 deg (range alone 0.51; the paper's camera sphere: 1.52, range 0.37). In a wide box the rings
+    also leave exploration off (on: 0.86 deg / 32 cm, ``suspect``; off: 0.53 deg / 37 cm)."""
     log_path("nuscenes_n015.bag")
     problem = load_real_frames("nuscenes_n015.bag", cameras=6, ego_motion=True)
     assert len(problem.frames) == 6
     config = solver_config(Config())
     assert config.viewpoint == "camera"  # by the box alone
     assert resolve_viewpoint(problem.frames, problem.T_init, config).viewpoint == "lidar"  # by the rings
+    wide = replace(config, search_deg=10.0, search_m=1.0)
+    assert wide.explores and not resolve_viewpoint(problem.frames, problem.T_init, wide).explores
     result = calibrate(problem.frames, problem.T_init, config)
     assert result.gradient_viewpoint == "lidar"
     rot, _ = errors(result.T_camera_lidar, problem.T_true)
@@ -210,7 +213,9 @@ def test_nuscenes_six_cameras_joint_with_ego_motion() -> None:
 
 def test_dense_rings_keep_the_camera_viewpoint() -> None:
     """KITTI's 64 beams give about 3 of 8 sphere neighbours on other rings: ``auto`` keeps the paper's
-    camera sphere in the default box."""
+    camera sphere in the default box, and exploration in a wide one."""
     log_path("kitti_2011_09_26.mcap")
     problem = load_real_frames("kitti_2011_09_26.mcap")
     assert resolve_viewpoint(problem.frames, problem.T_init, solver_config(Config())).viewpoint == "camera"
+    wide = replace(solver_config(Config()), search_deg=10.0, search_m=1.0)
+    assert resolve_viewpoint(problem.frames, problem.T_init, wide).explores  # dense rings keep exploring

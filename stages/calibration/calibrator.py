@@ -221,10 +221,14 @@ class CalibrationConfig:
             seeds within 0.3 deg / 10 cm either way, 25-44 s per seed vs 35-56 s (fewer confirming runs
             needed); simulated street (64 beams) 3 of 3 runs vs 1 of 6, ``recalibrated`` 0.049 deg /
             0.9 cm in 27 s vs ``suspect`` 0.060 / 1.0 in 75 s; 32 beams 0.75 deg / 22 cm either way;
-            16 beams 1.99 deg / 37 cm ``recalibrated`` vs 4.9 deg / 157 cm ``suspect`` (its runs now
-            agree on a biased optimum: sparse lidars remain GOM's weak spot). With the default 5 deg /
+            16 beams 1.99 deg / 37 cm ``recalibrated`` vs 4.9 deg / 157 cm ``suspect`` (its runs
+            agree on a biased optimum). With the default 5 deg /
             0.5 m box it moved KITTI from 0.13 deg / 7.2 cm to 0.44 / 18.5 (score 0.71385 vs 0.71377:
-            a flat ridge) and did not help PJLab rig1, hence off there.
+            a flat ridge) and did not help PJLab rig1, hence off there. Off as well for scans whose rings
+            are too sparse for the camera sphere (``resolve_viewpoint``; nuScenes' 32 beams): nuScenes
+            joint+ego in a 10 deg / 1 m box 0.86 deg / 32 cm ``suspect`` vs 0.53 / 37 ``recalibrated``.
+            The simulated 16- and 32-beam scans (columns 0.7 deg apart) are not sparse by that rule and
+            explore (numbers above).
         explore_blur_factor, explore_iterations, explore_stride: the exploration phase's extra blur
             (times ``default_blur_sigma_px`` of the image width), length and point subsampling (stride 1
             vs 4 on the simulated street: 3 of 6 runs in the truth's basin vs 2 of 3, runs 11 vs 7 s).
@@ -699,18 +703,24 @@ def _agreeing(runs: list[_Run], best: int, cfg: CalibrationConfig) -> int:
 
 def resolve_viewpoint(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
                       config: CalibrationConfig) -> CalibrationConfig:
-    """``config`` with the data part of the ``auto`` viewpoint applied: where the box alone would pick
-    the camera sphere but the scan's rings are so sparse that its points have fewer than 2 of their
-    ``sphere_k`` nearest neighbours on other rings (``cross_ring_neighbours`` on the first frame's
-    lidar sphere), the lidar viewpoint with neighbours across rings is taken instead."""
-    if config.gradient_viewpoint != "auto" or config.viewpoint != "camera" or config.metric != "gom" or not frames:
+    """``config`` with the data part of the ``auto`` rules applied, for a scan whose rings are so sparse
+    that its points have fewer than 2 of their ``sphere_k`` nearest neighbours on other rings
+    (``cross_ring_neighbours`` on the first frame's lidar sphere): where the box alone would pick the
+    camera sphere, the lidar viewpoint with neighbours across rings is taken instead, and where it would
+    explore, exploration is left off (see ``CalibrationConfig.explore``)."""
+    if config.metric != "gom" or not frames:
+        return config
+    pick_view = config.gradient_viewpoint == "auto" and config.viewpoint == "camera"
+    skip_explore = config.explore == "auto" and config.explores
+    if not (pick_view or skip_explore):
         return config
     points = np.asarray(frames[0].points_xyz, dtype=np.float64)
     points = points[np.all(np.isfinite(points), axis=1)]
     R = (np.asarray(frames[0].T_camera_camera0) @ np.asarray(T_camera_lidar_init))[:3, :3]
     if cross_ring_neighbours(sphere_coordinates(points @ R.T), config.sphere_k) >= 2:
         return config
-    return dataclasses.replace(config, gradient_viewpoint="lidar")
+    return dataclasses.replace(config, gradient_viewpoint="lidar" if pick_view else config.gradient_viewpoint,
+                               explore="off" if skip_explore else config.explore)
 
 
 def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
