@@ -21,7 +21,7 @@ from pipeline.transforms import invert, rotation_error_deg, translation_error_m
 from readers.frames import load_tf_tree
 from readers.open import open_log
 from stages.calibration import CalibrationConfig, CalibrationFrame, calibrate
-from stages.calibration.calibrator import build_frame, resolve_viewpoint
+from stages.calibration.calibrator import build_frame, resolve_auto_rules
 from tests.conftest import SHARED_DATA
 from tests.test_calibration_synthetic import perturb
 from workflows.calibrate import solver_config
@@ -202,9 +202,9 @@ def test_nuscenes_six_cameras_joint_with_ego_motion() -> None:
     assert len(problem.frames) == 6
     config = solver_config(Config())
     assert config.viewpoint == "camera"  # by the box alone
-    assert resolve_viewpoint(problem.frames, problem.T_init, config).viewpoint == "lidar"  # by the rings
+    assert resolve_auto_rules(problem.frames, problem.T_init, config).viewpoint == "lidar"  # by the rings
     wide = replace(config, search_deg=10.0, search_m=1.0)
-    assert wide.explores and not resolve_viewpoint(problem.frames, problem.T_init, wide).explores
+    assert wide.explores and not resolve_auto_rules(problem.frames, problem.T_init, wide).explores
     result = calibrate(problem.frames, problem.T_init, config)
     assert result.gradient_viewpoint == "lidar"
     rot, _ = errors(result.T_camera_lidar, problem.T_true)
@@ -216,6 +216,6 @@ def test_dense_rings_keep_the_camera_viewpoint() -> None:
     camera sphere in the default box, and exploration in a wide one."""
     log_path("kitti_2011_09_26.mcap")
     problem = load_real_frames("kitti_2011_09_26.mcap")
-    assert resolve_viewpoint(problem.frames, problem.T_init, solver_config(Config())).viewpoint == "camera"
+    assert resolve_auto_rules(problem.frames, problem.T_init, solver_config(Config())).viewpoint == "camera"
     wide = replace(solver_config(Config()), search_deg=10.0, search_m=1.0)
-    assert resolve_viewpoint(problem.frames, problem.T_init, wide).explores  # dense rings keep exploring
+    assert resolve_auto_rules(problem.frames, problem.T_init, wide).explores  # dense rings keep exploring

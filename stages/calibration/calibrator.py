@@ -181,7 +181,7 @@ class CalibrationConfig:
             guess is trusted, e.g. a drifted factory calibration), ``lidar`` for wider boxes
             (``wide_box``), and ``lidar`` as well when
             the scan's rings are too sparse for the camera sphere (``calibrate`` applies
-            ``resolve_viewpoint``: fewer than 2 of 8 sphere neighbours on other rings). Evidence
+            ``resolve_auto_rules``: fewer than 2 of 8 sphere neighbours on other rings). Evidence
             (range+normals, 3 repeats, lidar view with the auto fit and neighbours vs camera view) from
             each log's tf, box 5 deg / 0.5 m: KITTI 0.189 deg / 3.7 cm vs 0.133 / 7.2; PJLab rig1 0.85 /
             45 vs 0.186 / 27; nuScenes joint+ego 0.53 deg vs 1.52 (range: 0.51 vs 0.37; without
@@ -208,27 +208,23 @@ class CalibrationConfig:
             Lidar view, lsq: KITTI (aspect 0.49) from 5 deg / 0.5 m 10 of 10 seeds vs 8 of 10;
             nuScenes (32 beams, aspect 0.25) 0.53 vs 2.83 deg. On the camera's sphere it hurt KITTI
             (0.133 deg / 7.2 cm -> 0.349 / 11.6) and helped nuScenes (1.52 -> 0.71 deg).
-        explore: GOM only: the swarm's first ``explore_iterations`` (at most a third of
-            ``max_iterations``) score poses against the image gradients blurred by a further
-            ``explore_blur_factor`` x the default blur (wider basins of attraction), on every
-            ``explore_stride``-th point; then every particle's best is re-scored on the real objective
-            and the swarm flies on (``pso.particle_swarm``). The box and the lidar gradients stay as
-            they are (the removed coarse-to-fine schedule shrank the box around a blurred optimum).
-            ``on``, ``off`` or ``auto`` (default): on in a ``wide_box`` (a far start with several optima
-            in it). Evidence, box 10 deg / 1 m: KITTI from
-            5 deg / 0.5 m, seeded runs in the truth's basin: seed 7's start 5 of 6 vs 3 of 6, seed 2's
-            6 of 6 vs 3 of 6; 10 of 10
-            seeds within 0.3 deg / 10 cm either way, 25-44 s per seed vs 35-56 s (fewer confirming runs
-            needed); simulated street (64 beams) 3 of 3 runs vs 1 of 6, ``recalibrated`` 0.049 deg /
-            0.9 cm in 27 s vs ``suspect`` 0.060 / 1.0 in 75 s; 32 beams 0.75 deg / 22 cm either way;
-            16 beams 1.99 deg / 37 cm ``recalibrated`` vs 4.9 deg / 157 cm ``suspect`` (its runs
-            agree on a biased optimum). With the default 5 deg /
-            0.5 m box it moved KITTI from 0.13 deg / 7.2 cm to 0.44 / 18.5 (score 0.71385 vs 0.71377:
-            a flat ridge) and did not help PJLab rig1, hence off there. Off as well for scans whose rings
-            are too sparse for the camera sphere (``resolve_viewpoint``; nuScenes' 32 beams): nuScenes
-            joint+ego in a 10 deg / 1 m box 0.86 deg / 32 cm ``suspect`` vs 0.53 / 37 ``recalibrated``.
-            The simulated 16- and 32-beam scans (columns 0.7 deg apart) are not sparse by that rule and
-            explore (numbers above).
+        explore: GOM only: the swarm's first ``explore_iterations`` (at most a third of ``max_iterations``)
+            score poses against the image gradients blurred by a further ``explore_blur_factor`` x the default
+            blur (wider basins of attraction), on every ``explore_stride``-th point; then every particle's best
+            is re-scored on the real objective and the swarm flies on (``pso.particle_swarm``). The box and the
+            lidar gradients stay as they are (the removed coarse-to-fine schedule shrank the box around a
+            blurred optimum). ``on``, ``off`` or ``auto`` (default): on in a ``wide_box`` (a far start with
+            several optima in it). Evidence, box 10 deg / 1 m: KITTI from 5 deg / 0.5 m, seeded runs in the
+            truth's basin: seed 7's start 5 of 6 vs 3 of 6, seed 2's 6 of 6 vs 3 of 6; 10 of 10 seeds within 0.3
+            deg / 10 cm either way, 25-44 s per seed vs 35-56 s (fewer confirming runs needed); simulated street
+            (64 beams) 3 of 3 runs vs 1 of 6, ``recalibrated`` 0.049 deg / 0.9 cm in 27 s vs ``suspect`` 0.060 /
+            1.0 in 75 s; 32 beams 0.75 deg / 22 cm either way; 16 beams 1.99 deg / 37 cm ``recalibrated`` vs 4.9
+            deg / 157 cm ``suspect`` (its runs agree on a biased optimum). With the default 5 deg / 0.5 m box it
+            moved KITTI from 0.13 deg / 7.2 cm to 0.44 / 18.5 (score 0.71385 vs 0.71377: a flat ridge) and did
+            not help PJLab rig1, hence off there. Off as well for scans whose rings are too sparse for the
+            camera sphere (``resolve_auto_rules``; nuScenes' 32 beams): nuScenes joint+ego in a 10 deg / 1 m box
+            0.86 deg / 32 cm ``suspect`` vs 0.53 / 37 ``recalibrated``. The simulated 16- and 32-beam scans
+            (columns 0.7 deg apart) are not sparse by that rule and explore (numbers above).
         explore_blur_factor, explore_iterations, explore_stride: the exploration phase's extra blur
             (times ``default_blur_sigma_px`` of the image width), length and point subsampling (stride 1
             vs 4 on the simulated street: 3 of 6 runs in the truth's basin vs 2 of 3, runs 11 vs 7 s).
@@ -651,7 +647,7 @@ class CalibrationProblem:
                                min_iterations=cfg.min_iterations, score_tolerance=cfg.swarm_tolerance,
                                seed=seed, x_initial=centre,
                                explore_objective=self.evaluate_explore if self.explore_scorers else None,
-                               explore_iterations=cfg.explore_phase_iterations if self.explore_scorers else 0)
+                               explore_iterations=cfg.explore_phase_iterations)
         if not cfg.polish:
             return swarm, None
         step = 0.1 * (self.upper - self.lower)
@@ -701,7 +697,7 @@ def _agreeing(runs: list[_Run], best: int, cfg: CalibrationConfig) -> int:
                             cfg.agree_translation_m)
 
 
-def resolve_viewpoint(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
+def resolve_auto_rules(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
                       config: CalibrationConfig) -> CalibrationConfig:
     """``config`` with the data part of the ``auto`` rules applied, for a scan whose rings are so sparse
     that its points have fewer than 2 of their ``sphere_k`` nearest neighbours on other rings
@@ -733,7 +729,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         ProcessingError: no frames, or the camera sees (almost) no lidar points anywhere in the box.
         ConfigError: invalid settings.
     """
-    cfg = resolve_viewpoint(frames, T_camera_lidar_init, config or CalibrationConfig())
+    cfg = resolve_auto_rules(frames, T_camera_lidar_init, config or CalibrationConfig())
     problem = CalibrationProblem(frames, T_camera_lidar_init, cfg)
     centre = 0.5 * (problem.lower + problem.upper)
     start = time.perf_counter()
@@ -751,9 +747,9 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
             f"the camera sees {int(counts.sum())} lidar points at the best pose in the search box "
             f"(+-{cfg.search_deg} deg, +-{cfg.search_m} m around the initial guess); need {cfg.min_points}")
     T_best = best_run.T_camera_lidar
-    Ts = [run.T_camera_lidar for run in runs]
     rot_std = trans_std = float("nan")
     if len(runs) > 1:
+        Ts = [run.T_camera_lidar for run in runs]
         rot_std = float(np.sqrt(np.mean([rotation_error_deg(T, T_best) ** 2 for T in Ts])))
         trans_std = float(np.sqrt(np.mean([translation_error_m(T, T_best) ** 2 for T in Ts])))
     agreeing = _agreeing(runs, best_index, cfg)
