@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.camera_model import CameraModel
 from pipeline.config import Config
-from stages.calibration import GomScorer, calibrate
+from stages.calibration import GomScorer, GradientPlanes, calibrate
 from tests.test_calibration_real import LOGS, errors, load_real_frames
 from tests.test_calibration_synthetic import perturb
 from workflows.calibrate import solver_config
@@ -56,8 +56,8 @@ def bench_kernel(n_points: int = 80_000, n_poses: int = 200, repeats: int = 5) -
     pts = cam.unproject(uv) * (5 + 30 * rng.random(n_points))[:, None]
     lidar_gx, lidar_gy = rng.standard_normal(n_points), rng.standard_normal(n_points)
     lidar_mag = rng.random(n_points)
-    scorer = GomScorer(pts, lidar_gx, lidar_gy, lidar_mag, rng.standard_normal((375, 1242)),
-                       rng.standard_normal((375, 1242)), cam)
+    image = GradientPlanes.of(rng.standard_normal((375, 1242)), rng.standard_normal((375, 1242)), cam)
+    scorer = GomScorer(pts, lidar_gx, lidar_gy, lidar_mag, image, cam)
     T = np.tile(np.eye(4), (n_poses, 1, 1))
     T[:, :3, :3] = Rotation.from_rotvec(rng.standard_normal((n_poses, 3)) * 0.005).as_matrix()
     scorer.score(T[:2])

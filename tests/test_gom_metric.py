@@ -14,6 +14,7 @@ from stages.calibration import (
     CalibrationConfig,
     CalibrationProblem,
     GomScorer,
+    GradientPlanes,
     LevinsonScorer,
     NmiScorer,
     calibrate_affine,
@@ -127,7 +128,7 @@ def test_gom_kernel_matches_numpy_reference(model: str) -> None:
     shape = (camera.height, camera.width)
     igx = np.asarray(cv2.GaussianBlur(rng.standard_normal(shape), (0, 0), 2.0), dtype=np.float64)
     igy = np.asarray(cv2.GaussianBlur(rng.standard_normal(shape), (0, 0), 2.0), dtype=np.float64)
-    scorer = GomScorer(pts, lgx, lgy, lmag, igx, igy, camera)
+    scorer = GomScorer(pts, lgx, lgy, lmag, GradientPlanes.of(igx, igy, camera), camera)
     poses = np.stack([np.eye(4), from_xyz_rpy(0.1, -0.05, 0.2, 3, -2, 10), from_xyz_rpy(0, 0, 0, 0, 90, 0)])
     batch = scorer.score(poses)
     for k, T in enumerate(poses):
@@ -144,18 +145,44 @@ def test_gom_kernel_matches_numpy_reference(model: str) -> None:
     assert batch.scores[0] == pytest.approx(0.5, abs=0.1)  # unrelated gradients: chance level
 
 
+def test_gom_scorer_against_blurred_planes_shares_the_lidar_side() -> None:
+    """``against(image.blurred(s), stride)`` scores like a scorer built from every stride-th point and the
+    Gaussian-blurred gradients, without copying the frame's planes for each channel."""
+    camera = CAMERAS["plumb_bob"]
+    rng = np.random.default_rng(5)
+    pts = random_points(900, seed=6)
+    lgx, lgy, lmag = rng.standard_normal(900), rng.standard_normal(900), rng.random(900)
+    shape = (camera.height, camera.width)
+    igx, igy = rng.standard_normal(shape), rng.standard_normal(shape)
+    image = GradientPlanes.of(igx, igy, camera)
+    scorer = GomScorer(pts, lgx, lgy, lmag, image, camera)
+    twin = scorer.against(image.blurred(3.0), stride=3)
+    blur = [cv2.GaussianBlur(g, (0, 0), 3.0) for g in (igx, igy)]
+    fresh = GomScorer(pts[::3], lgx[::3], lgy[::3], lmag[::3], GradientPlanes.of(*blur, camera), camera)
+    poses = np.stack([np.eye(4), from_xyz_rpy(0.05, 0.0, -0.1, 1, 2, -3)])
+    np.testing.assert_allclose(twin.score(poses).scores, fresh.score(poses).scores, atol=1e-12)
+    assert twin.score(poses).counts.tolist() == fresh.score(poses).counts.tolist()
+    assert scorer.image.planes is image.planes and twin.image.mask is image.mask
+    assert not np.allclose(twin.score(poses).scores, scorer.score(poses).scores)
+
+
 def test_gom_empty_and_bad_inputs() -> None:
     camera = CAMERAS["plumb_bob"]
     zeros = np.zeros((camera.height, camera.width))
+    image = GradientPlanes.of(zeros, zeros, camera)
     behind = np.array([[0.0, 0.0, -5.0]] * 3)
-    batch = GomScorer(behind, np.ones(3), np.ones(3), np.ones(3), zeros, zeros, camera).score(np.eye(4))
+    batch = GomScorer(behind, np.ones(3), np.ones(3), np.ones(3), image, camera).score(np.eye(4))
     assert batch.counts[0] == 0 and batch.scores[0] == 0.0
     with pytest.raises(ProcessingError, match="NaN"):
-        GomScorer(np.array([[np.nan, 0, 1.0]]), np.ones(1), np.ones(1), np.ones(1), zeros, zeros, camera)
+        GomScorer(np.array([[np.nan, 0, 1.0]]), np.ones(1), np.ones(1), np.ones(1), image, camera)
     with pytest.raises(ProcessingError, match="does not match camera"):
-        GomScorer(behind, np.ones(3), np.ones(3), np.ones(3), zeros[:10], zeros[:10], camera)
+        GradientPlanes.of(zeros[:10], zeros[:10], camera)
+    with pytest.raises(ProcessingError, match="does not match camera"):
+        wide = np.zeros((500, 2000))
+        GomScorer(behind, np.ones(3), np.ones(3), np.ones(3), GradientPlanes.of(wide, wide, CAMERAS["cylindrical"]),
+                  camera)
     with pytest.raises(ProcessingError, match="values for"):
-        GomScorer(behind, np.ones(2), np.ones(3), np.ones(3), zeros, zeros, camera)
+        GomScorer(behind, np.ones(2), np.ones(3), np.ones(3), image, camera)
 
 
 def test_nmi_and_levinson_match_numpy_reference() -> None:

@@ -17,6 +17,7 @@ from stages.calibration.landscape import ScoreLandscape, score_landscape
 from stages.calibration.metrics import (
     METRICS,
     GomScorer,
+    GradientPlanes,
     LevinsonScorer,
     MetricBatch,
     NmiScorer,
@@ -33,6 +34,7 @@ __all__ = [
     "CalibrationProblem",
     "CalibrationResult",
     "GomScorer",
+    "GradientPlanes",
     "LevinsonScorer",
     "LidarGradients",
     "MetricBatch",

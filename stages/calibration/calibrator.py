@@ -41,6 +41,7 @@ from pipeline.transforms import apply, rotation_error_deg, translation_error_m
 from stages.calibration.metrics import (
     METRICS,
     GomScorer,
+    GradientPlanes,
     LevinsonScorer,
     MetricBatch,
     NmiScorer,
@@ -510,14 +511,23 @@ class CalibrationProblem:
             self.points_used.append(n)
         self.explore_scorers: list[list[Scorer]] = []
         if config.explores:
-            self.explore_scorers = [
-                [s.blurred(config.explore_blur_factor * default_blur_sigma_px(f.camera.width), config.explore_stride)
-                 for s in scorers if isinstance(s, GomScorer)] for f, scorers in zip(frames, self.scorers, strict=True)]
+            self.explore_scorers = [self._explore_scorers(f, scorers)
+                                    for f, scorers in zip(frames, self.scorers, strict=True)]
         self.evaluations = 0
         centre = np.zeros((1, self.dim)) + 0.5 * (self.lower + self.upper)
         init_counts = self._channel_counts(centre)
         self.min_counts = [np.maximum(config.min_points, np.floor(config.min_overlap_fraction * c)).astype(np.int64)
                            for c in init_counts]
+
+    def _explore_scorers(self, f: CalibrationFrame, scorers: list[Scorer]) -> list[Scorer]:
+        """A frame's GOM scorers against its image gradients blurred for exploration (one blurred copy per
+        frame, shared by the channels), on every ``explore_stride``-th point."""
+        cfg = self.config
+        gom = [s for s in scorers if isinstance(s, GomScorer)]
+        if not gom:
+            return []
+        blurred = gom[0].image.blurred(cfg.explore_blur_factor * default_blur_sigma_px(f.camera.width))
+        return [s.against(blurred, cfg.explore_stride) for s in gom]
 
     def _prepare(self, f: CalibrationFrame, T_cam_lidar: Mat4) -> tuple[list[Scorer], int]:
         """Scorers of one frame (one per feature channel; Levinson: one) and its largest point count."""
@@ -558,17 +568,19 @@ class CalibrationProblem:
         scorers: list[Scorer] = []
         counts: list[int] = []
         neighbours: NDArray[np.int64] | None = None  # one sphere search per frame, shared by the channels
+        image = GradientPlanes.of(f.gradients.gx, f.gradients.gy, f.camera, f.mask)  # shared too
         for c in range(feat.shape[1]):
-            scorer, n, neighbours = self._gom_scorer(f, raw, pts, feat[:, c], T_cam_lidar, neighbours)
+            scorer, n, neighbours = self._gom_scorer(f, raw, pts, feat[:, c], T_cam_lidar, image, neighbours)
             scorers.append(scorer)
             counts.append(n)
         return scorers, max(counts)
 
     def _gom_scorer(self, f: CalibrationFrame, raw: NDArray[np.float64], pts: NDArray[np.float64],
-                    feat: NDArray[np.float64], T_cam_lidar: Mat4,
+                    feat: NDArray[np.float64], T_cam_lidar: Mat4, image: GradientPlanes,
                     neighbours: NDArray[np.int64] | None) -> tuple[Scorer, int, NDArray[np.int64]]:
-        """GOM scorer of one feature channel (lidar gradients, paper 3.3, and the point selection), its
-        point count and the sphere neighbours it used (``neighbours``: another channel's, or None)."""
+        """GOM scorer of one feature channel (lidar gradients, paper 3.3, and the point selection) against
+        the frame's ``image`` gradients, its point count and the sphere neighbours it used
+        (``neighbours``: another channel's, or None)."""
         cfg = self.config
         if cfg.viewpoint == "lidar":
             grads = lidar_view_gradients(raw, pts, feat, T_cam_lidar,
@@ -584,8 +596,7 @@ class CalibrationProblem:
         if cfg.keep_fraction < 1.0 and np.any(sel):
             cut = np.quantile(magnitude[sel], 1.0 - cfg.keep_fraction)
             sel &= magnitude >= cut
-        scorer = GomScorer(pts[sel], grads.gx[sel], grads.gy[sel], magnitude[sel], f.gradients.gx,
-                           f.gradients.gy, f.camera, f.mask,
+        scorer = GomScorer(pts[sel], grads.gx[sel], grads.gy[sel], magnitude[sel], image, f.camera,
                            T_cam_lidar[:3, :3] if cfg.turn_gradients_with_roll else None)
         return scorer, int(sel.sum()), grads.neighbours
 

@@ -129,19 +129,48 @@ def _focal(focal_scale: NDArray[np.floating] | None, n_pose: int) -> NDArray[np.
     return fs
 
 
+@dataclass(frozen=True)
+class GradientPlanes:
+    """One image's gradients packed for the GOM kernel, built once per frame and shared by its scorers.
+
+    Attributes:
+        planes: (H, W, 2) float64 image gradient along u and along v (e.g. Sobel), per pixel.
+        mask: (H, W) uint8, 1 where the image is valid.
+    """
+
+    planes: NDArray[np.float64]
+    mask: NDArray[np.uint8]
+
+    @classmethod
+    def of(cls, image_gx: NDArray[np.floating], image_gy: NDArray[np.floating], camera: CameraModel,
+           mask: NDArray[np.generic] | None = None) -> GradientPlanes:
+        """Pack (H, W) gradients along u and v of an image of ``camera`` (optional (H, W) valid mask)."""
+        igx, igy = np.asarray(image_gx), np.asarray(image_gy)
+        if igx.shape != igy.shape or igx.ndim != 2:
+            raise ProcessingError(f"image gradients {igx.shape} / {igy.shape} must be equal (H, W)")
+        if igx.shape != (camera.height, camera.width):
+            raise ProcessingError(_size_message(igx.shape, camera))
+        return cls(_planes(np.stack([igx, igy], axis=2)), _mask(mask, igx.shape))
+
+    def blurred(self, sigma_px: float) -> GradientPlanes:
+        """The gradients smoothed by a Gaussian of ``sigma_px`` pixels (equal to the gradients of the image
+        blurred by it: both are linear filters); same mask."""
+        planes = np.stack([cv2.GaussianBlur(self.planes[:, :, c], (0, 0), sigma_px) for c in range(2)], axis=2)
+        return GradientPlanes(np.ascontiguousarray(planes), self.mask)
+
+
 class GomScorer:
     """GOM of one lidar scan (with its sphere gradients) against one image's gradients."""
 
     def __init__(self, points_xyz: NDArray[np.floating], lidar_gx: NDArray[np.floating],
                  lidar_gy: NDArray[np.floating], lidar_magnitude: NDArray[np.floating],
-                 image_gx: NDArray[np.floating], image_gy: NDArray[np.floating], camera: CameraModel,
-                 mask: NDArray[np.generic] | None = None,
+                 image: GradientPlanes, camera: CameraModel,
                  R_camera_lidar_gradients: NDArray[np.floating] | None = None) -> None:
         """Args: points (N, 3) lidar frame; lidar gradient x/y/magnitude (N,) on the camera sphere;
-        image gradient x/y (H, W) (e.g. Sobel); camera intrinsics; optional (H, W) valid mask;
-        optional 3x3 rotation of the camera the lidar gradients were computed at: when given, each
-        pose's roll about the optical axis relative to it turns the lidar gradient orientations
-        (the paper keeps them fixed, which costs accuracy when the initial roll is off)."""
+        the image's gradient planes (shared, not copied); camera intrinsics; optional 3x3 rotation of
+        the camera the lidar gradients were computed at: when given, each pose's roll about the optical
+        axis relative to it turns the lidar gradient orientations (the paper keeps them fixed, which
+        costs accuracy when the initial roll is off)."""
         self.points = _points(points_xyz)
         n = self.points.shape[0]
         gx = _per_point(lidar_gx, n, "lidar gx")
@@ -150,28 +179,25 @@ class GomScorer:
         theta = np.arctan2(gy, gx)
         self.c2 = np.ascontiguousarray(np.cos(2 * theta))
         self.s2 = np.ascontiguousarray(np.sin(2 * theta))
-        igx, igy = np.asarray(image_gx), np.asarray(image_gy)
-        if igx.shape != igy.shape or igx.ndim != 2:
-            raise ProcessingError(f"image gradients {igx.shape} / {igy.shape} must be equal (H, W)")
-        if igx.shape != (camera.height, camera.width):
-            raise ProcessingError(_size_message(igx.shape, camera))
-        self.planes = _planes(np.stack([igx, igy], axis=2))
-        self.mask = _mask(mask, igx.shape)
+        if image.planes.shape[:2] != (camera.height, camera.width):
+            raise ProcessingError(_size_message(image.planes.shape, camera))
+        self.image = image
         self.cam = camera_params(camera)
         self.R_gradients = None if R_camera_lidar_gradients is None else np.asarray(
             R_camera_lidar_gradients, dtype=np.float64).reshape(3, 3)
 
-    def blurred(self, sigma_px: float, stride: int = 1) -> GomScorer:
-        """This scorer against image gradients smoothed by a further Gaussian of ``sigma_px`` pixels (the
-        gradients of the image blurred by it: both are linear filters), on every ``stride``-th point."""
+    def against(self, image: GradientPlanes, stride: int = 1) -> GomScorer:
+        """This scorer's lidar gradients, on every ``stride``-th point, against other gradient planes of
+        the same camera (e.g. ``image.blurred(...)`` for a wider basin)."""
+        if image.planes.shape != self.image.planes.shape:
+            raise ProcessingError(f"gradient planes {image.planes.shape} do not match {self.image.planes.shape}")
         twin = copy.copy(self)
+        twin.image = image
         if stride > 1:
             twin.points = np.ascontiguousarray(self.points[::stride])
             twin.c2 = np.ascontiguousarray(self.c2[::stride])
             twin.s2 = np.ascontiguousarray(self.s2[::stride])
             twin.magnitude = np.ascontiguousarray(self.magnitude[::stride])
-        twin.planes = np.ascontiguousarray(np.stack(
-            [cv2.GaussianBlur(self.planes[:, :, c], (0, 0), sigma_px) for c in range(2)], axis=2))
         return twin
 
     def score(self, T_camera_lidar_batch: NDArray[np.floating],
@@ -183,8 +209,8 @@ class GomScorer:
             R_rel = poses[:, :, :3] @ self.R_gradients.T
             roll = np.arctan2(R_rel[:, 1, 0], R_rel[:, 0, 0])
             roll2 = np.ascontiguousarray(np.column_stack([np.cos(2 * roll), np.sin(2 * roll)]))
-        num, den, count = mk.gom_batch_kernel(self.points, self.c2, self.s2, self.magnitude, self.planes,
-                                              self.mask, self.cam, poses, _focal(focal_scale, poses.shape[0]),
+        num, den, count = mk.gom_batch_kernel(self.points, self.c2, self.s2, self.magnitude, self.image.planes,
+                                              self.image.mask, self.cam, poses, _focal(focal_scale, poses.shape[0]),
                                               roll2)
         with np.errstate(divide="ignore", invalid="ignore"):
             gom = np.where(den > 0, num / (2.0 * den), 0.0)
