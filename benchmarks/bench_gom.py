@@ -5,10 +5,13 @@ against a 1242x375 image, (2) a table of rotation / translation error vs the ``.
 reference and runtime for every available real log x {gom, nmi, levinson} with the workflow's
 defaults (``fleetcal calibrate``: range+normals, 3 seeded repeats), and (3) with
 ``--seeds N`` the KITTI robustness study: starts 5 deg / 0.5 m off on random axes, search 10 deg / 1 m
-(the auto gradient viewpoint then takes the lidar's own sphere and the swarm explores first).
+(the auto gradient viewpoint then takes the lidar's own sphere and the swarm explores first), and
+(4) with ``--rings N`` the sparse-ring study: a simulated VLP-16 (16 rings 2 deg apart, 1800 columns,
+street, 10 frames) from N starts 2 deg / 10 cm off, ring smoothing auto vs off.
 
     .venv/bin/python benchmarks/bench_gom.py [--seeds 10] [--logs kitti pjlab nuscenes] [--skip-table]
         [--sim [sim-street sim-open-normals ...]]   (simulated logs with exact truth; alone: all)
+        [--rings 5]
 """
 
 from __future__ import annotations
@@ -128,6 +131,31 @@ def sim_table(names: list[str], metrics: list[str]) -> None:
                       f"{result.gradient_viewpoint:9s} {result.verdict}", flush=True)
 
 
+def rings_study(n: int) -> None:
+    """Simulated VLP-16 from ``n`` starts 2 deg / 10 cm off (seeds 7, 8, ...): ring smoothing auto vs off."""
+    import tempfile
+
+    from pipeline.transforms import rotation_error_deg, translation_error_m
+    from stages.calibration import CalibrationConfig
+    from tests.test_calibration_sim import simulated_frames
+
+    print(f"\nsimulated VLP-16 (16 rings x 1800 columns, street, intensity) from 2 deg / 10 cm, {n} starts")
+    print(f"{'start':>5s} {'smoothing':9s} {'sigma_px':>8s} {'rot_deg':>8s} {'trans_m':>8s} {'runtime_s':>9s} verdict")
+    within = {"auto": 0, "off": 0}
+    with tempfile.TemporaryDirectory() as tmp:
+        frames, _, T_true = simulated_frames(Path(tmp), "street", "intensity", 10, beams=16, columns=1800)
+        for seed in range(7, 7 + n):
+            T_start = perturb(T_true, 2.0, 0.1, seed=seed)
+            for mode in ("auto", "off"):
+                result = calibrate(frames, T_start, CalibrationConfig(repeats=3, ring_smoothing=mode))
+                rot = rotation_error_deg(result.T_camera_lidar, T_true)
+                trans = translation_error_m(result.T_camera_lidar, T_true)
+                within[mode] += rot <= 0.5
+                print(f"{seed:5d} {mode:9s} {result.ring_smoothing_px:8.2f} {rot:8.3f} {trans:8.3f} "
+                      f"{result.runtime_s:9.1f} {result.verdict}", flush=True)
+    print(f"  rotation within 0.5 deg: auto {within['auto']} of {n}, off {within['off']} of {n}")
+
+
 def seeds_study(n: int) -> None:
     log = "kitti_2011_09_26.mcap"
     if not (LOGS / log).exists():
@@ -154,6 +182,7 @@ def main() -> None:
     parser.add_argument("--logs", nargs="*", default=list(CASES), choices=list(CASES))
     parser.add_argument("--metrics", nargs="*", default=["gom", "nmi", "levinson"])
     parser.add_argument("--seeds", type=int, default=0, help="KITTI offset study with this many seeds")
+    parser.add_argument("--rings", type=int, default=0, help="simulated VLP-16 study with this many starts")
     parser.add_argument("--skip-table", action="store_true")
     parser.add_argument("--sim", nargs="*", default=None, choices=list(SIM_CASES),
                         help="simulated cases to add (give the flag alone for all)")
@@ -165,6 +194,8 @@ def main() -> None:
         sim_table(args.sim or list(SIM_CASES), args.metrics)
     if args.seeds:
         seeds_study(args.seeds)
+    if args.rings:
+        rings_study(args.rings)
 
 
 if __name__ == "__main__":

@@ -150,6 +150,10 @@ class CalibrationConfig:
         explore: GOM swarm's first 30 iterations against image gradients blurred 3x more (wider basins):
             ``on``, ``off`` or ``auto`` (default: on for boxes wider than 5 deg or 0.5 m); evidence in
             ``stages.calibration.calibrator.CalibrationConfig``.
+        ring_smoothing: GOM also scores each frame against its image gradients smoothed across the
+            lidar's rings by a third of their spacing (against aliasing by a sparse lidar's rings): ``on``,
+            ``off`` or ``auto`` (default: on where that is more than the image blur, e.g. 32 or 16 beams);
+            evidence in ``stages.calibration.calibrator.CalibrationConfig``.
     """
 
     metric: Literal["gom", "nmi", "levinson"] = "gom"
@@ -173,6 +177,7 @@ class CalibrationConfig:
     gradient_fit: Literal["auto", "paper", "lsq"] = "auto"
     gradient_neighbours: Literal["auto", "angle", "sampling"] = "auto"
     explore: Literal["auto", "on", "off"] = "auto"
+    ring_smoothing: Literal["auto", "on", "off"] = "auto"
 
     def validate(self) -> None:
         feature_names(self.feature)

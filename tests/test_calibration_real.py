@@ -194,9 +194,11 @@ def test_pjlab_rig2_single_raw_frame_of_another_rig() -> None:
 @pytest.mark.slow
 def test_nuscenes_six_cameras_joint_with_ego_motion() -> None:
     """Workflow defaults. The 32-beam lidar's points have about one of their 8 nearest sphere neighbours
-    on another ring, so ``auto`` takes the lidar viewpoint with neighbours across rings: measured
-    0.53 deg (range alone 0.51; the paper's camera sphere: 1.52, range 0.37). In a wide box the rings
-    also leave exploration off (on: 0.86 deg / 32 cm, ``suspect``; off: 0.53 deg / 37 cm)."""
+    on another ring, so ``auto`` takes the lidar viewpoint with neighbours across rings, and its rings
+    (1.33 deg, 29 px apart in these images) turn on the term smoothed across them (sigma 9.8 px):
+    measured 0.58 deg / 31 cm (without that term 0.53 / 37; range alone 0.51; the paper's camera
+    sphere: 1.52, range 0.37). In a wide box the rings also leave exploration off (on: 0.86 deg / 32 cm,
+    ``suspect``; off: 0.53 deg / 37 cm, before ring smoothing)."""
     log_path("nuscenes_n015.bag")
     problem = load_real_frames("nuscenes_n015.bag", cameras=6, ego_motion=True)
     assert len(problem.frames) == 6
@@ -207,6 +209,7 @@ def test_nuscenes_six_cameras_joint_with_ego_motion() -> None:
     assert wide.explores and not resolve_auto_rules(problem.frames, problem.T_init, wide).explores
     result = calibrate(problem.frames, problem.T_init, config)
     assert result.gradient_viewpoint == "lidar"
+    assert result.ring_smoothing_px == pytest.approx(9.8, rel=0.05)
     rot, _ = errors(result.T_camera_lidar, problem.T_true)
     assert rot <= 0.6, f"rotation error {rot:.3f} deg"
 

@@ -283,6 +283,30 @@ def test_several_feature_channels_score_the_mean_of_their_channels(frame: Calibr
     np.testing.assert_allclose(combined, 0.5 * (single[0] + single[1]), atol=1e-9)
 
 
+def test_ring_smoothing_adds_a_term_smoothed_across_the_rings(frame: CalibrationFrame) -> None:
+    """``ring_smoothing="on"`` scores each frame as the mean of GOM on its sharp image gradients and on
+    them smoothed across the rings by a third of the ring spacing (0.35 deg x 500 px / 3 ~ 1 px here);
+    ``auto`` leaves a scan whose rings are finer than the image blur alone."""
+    from stages.calibration.calibrator import CalibrationProblem
+    from stages.calibration.metrics import GomScorer
+
+    T_init = perturb(true_T_camera_lidar(), 2.0, 0.2, seed=4)
+    x = np.random.default_rng(1).uniform(-2, 2, (16, 6)) * [1, 1, 1, 0.1, 0.1, 0.1]
+    auto = CalibrationProblem([frame], T_init, CalibrationConfig())
+    on = CalibrationProblem([frame], T_init, CalibrationConfig(ring_smoothing="on"))
+    assert auto.ring_smoothing_px == [0.0] and len(auto.scorers[0]) == 1
+    sigma = on.ring_smoothing_px[0]
+    assert sigma == pytest.approx(np.radians(0.35) * 500 / 3, rel=0.05)
+    sharp, smoothed = on.scorers[0]
+    assert isinstance(sharp, GomScorer) and isinstance(smoothed, GomScorer)
+    assert smoothed.points is sharp.points and smoothed.image is not sharp.image
+    T = np.stack([on.T_camera_lidar(xi) for xi in x])
+    expected = 0.5 * (sharp.score(T).scores + smoothed.score(T).scores)
+    np.testing.assert_allclose(on.evaluate(x), expected, atol=1e-9)
+    np.testing.assert_allclose(auto.evaluate(x), sharp.score(T).scores, atol=1e-9)
+    assert np.ptp(on.evaluate(x) - auto.evaluate(x)) > 1e-4
+
+
 def test_unknown_feature_in_a_combination_is_a_config_error() -> None:
     from pipeline.config import CalibrationConfig as WorkflowCalibration
     from pipeline.config import feature_names

@@ -187,3 +187,15 @@ def test_confirm_repeats_reaches_the_solver() -> None:
     assert solver_config(Config()).confirm_repeats == 3
     config = load_config(env={"FLEETCAL_CALIBRATION__CONFIRM_REPEATS": "0"})
     assert solver_config(config).confirm_repeats == 0
+
+
+def test_ring_smoothing_reaches_the_solver_and_rejects_other_values() -> None:
+    from workflows.calibrate import solver_config
+
+    assert solver_config(Config()).ring_smoothing == "auto"
+    config = load_config(env={"FLEETCAL_CALIBRATION__RING_SMOOTHING": "off"})
+    assert solver_config(config).ring_smoothing == "off"
+    with pytest.raises(ConfigError, match=r"calibration\.ring_smoothing.*auto, on, off"):
+        load_config(env={"FLEETCAL_CALIBRATION__RING_SMOOTHING": "maybe"})
+    with pytest.raises(ConfigError, match="ring_smoothing"):
+        replace(solver_config(Config()), ring_smoothing_fraction=0.0).validate()

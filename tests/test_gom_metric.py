@@ -166,6 +166,26 @@ def test_gom_scorer_against_blurred_planes_shares_the_lidar_side() -> None:
     assert not np.allclose(twin.score(poses).scores, scorer.score(poses).scores)
 
 
+def test_blurred_along_smooths_one_image_direction_only() -> None:
+    """Across-ring smoothing along v: a horizontal line of gradient spreads into a Gaussian of the given
+    sigma along v, while gradients constant along v (a vertical edge) are left as they were."""
+    camera = CAMERAS["plumb_bob"]
+    h, w = camera.height, camera.width
+    gy = np.zeros((h, w))
+    gy[240, :] = 1.0  # a horizontal edge's gradient
+    gx = np.zeros((h, w))
+    gx[:, 320] = 1.0  # a vertical edge's gradient
+    smoothed = GradientPlanes.of(gx, gy, camera).blurred_along(np.array([0.0, 1.0]), 4.0)
+    profile = smoothed.planes[:, 100, 1]
+    rows = np.arange(h)
+    assert profile.sum() == pytest.approx(1.0, rel=1e-3)
+    assert np.sqrt(np.sum(profile * (rows - 240.0) ** 2) / profile.sum()) == pytest.approx(4.0, rel=0.05)
+    np.testing.assert_allclose(smoothed.planes[:, :, 0], gx, atol=1e-9)
+    across = GradientPlanes.of(gx, gy, camera).blurred_along(np.array([1.0, 0.0]), 4.0)  # along u instead
+    np.testing.assert_allclose(across.planes[:, :, 1], gy, atol=1e-9)
+    assert across.planes[100, 320, 0] < 0.15
+
+
 def test_gom_empty_and_bad_inputs() -> None:
     camera = CAMERAS["plumb_bob"]
     zeros = np.zeros((camera.height, camera.width))

@@ -15,6 +15,7 @@ from stages.calibration.sphere_gradients import (
     compute_sphere_gradients,
     cross_ring_neighbours,
     lidar_view_gradients,
+    ring_spacing_rad,
     sampling_aspect,
     sphere_coordinates,
 )
@@ -126,6 +127,26 @@ def test_sampling_neighbours_see_an_edge_between_sparse_rings() -> None:
     assert np.all(by_sampling.magnitude[inner] > 0)
     vertical = _doubled_angle_error_deg(by_sampling.orientation[inner], np.full(inner.sum(), np.pi / 2))
     assert np.median(vertical) < 1.0, f"edge gradient {np.median(vertical):.2f} deg off vertical"
+
+
+def _spinning_scan(ring_step_deg: float, rings: int, columns: int) -> NDArray[np.float64]:
+    """A full turn of a spinning lidar (lidar frame, z up): ``rings`` rings ``ring_step_deg`` apart about
+    the horizon, ``columns`` columns, ranges 6-14 m varying with azimuth."""
+    elevation = np.radians((np.arange(rings) - (rings - 1) / 2) * ring_step_deg)
+    azimuth = np.radians(np.arange(columns) * 360.0 / columns)
+    E, A = np.meshgrid(elevation, azimuth)
+    r = 10.0 + 4.0 * np.sin(3 * A)
+    return np.column_stack([(r * np.cos(E) * np.cos(A)).ravel(), (r * np.cos(E) * np.sin(A)).ravel(),
+                            (r * np.sin(E)).ravel()])
+
+
+def test_ring_spacing_is_measured_on_the_lidars_own_sphere() -> None:
+    """VLP-16-like (16 rings 2 deg apart, 1800 columns), HDL-32-like (1.33 deg, 1080) and 64-beam-like
+    (0.4 deg, 2000) scans give their ring spacing, whatever the range."""
+    for step, rings, columns in [(2.0, 16, 1800), (1.33, 32, 1080), (0.4, 64, 2000)]:
+        scan = _spinning_scan(step, rings, columns)
+        assert np.degrees(ring_spacing_rad(scan)) == pytest.approx(step, rel=0.02)
+    assert np.isnan(ring_spacing_rad(np.zeros((5, 3))))  # too few points to tell
 
 
 def test_cross_ring_neighbours_separate_sparse_from_dense_rings() -> None:

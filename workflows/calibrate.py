@@ -122,6 +122,7 @@ def solver_config(config: Config) -> SolverConfig:
         gradient_fit=c.gradient_fit,
         neighbours_by=c.gradient_neighbours,
         explore=c.explore,
+        ring_smoothing=c.ring_smoothing,
     )
 
 

@@ -50,6 +50,9 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--explore", choices=["auto", "on", "off"],
                    help="GOM swarm explores on image gradients blurred 3x more for its first 30 iterations; "
                         "auto (default): on for --search-deg above 5 or --search-m above 0.5")
+    p.add_argument("--ring-smoothing", choices=["auto", "on", "off"],
+                   help="GOM also scores image gradients smoothed across the lidar's rings (a third of their "
+                        "spacing); auto (default): on where that exceeds the image blur (sparse rings)")
     p.add_argument("--no-motion-compensation", action="store_true", help="ignore /tf odometry")
     p.add_argument("--estimate-focal", action="store_true", help="also estimate a focal length scale")
     p.add_argument("--particles", type=int, metavar="N", help="particle swarm size (default 200)")
@@ -76,6 +79,7 @@ def overrides(args: argparse.Namespace) -> dict[str, Any]:
         "calibration.confirm_repeats": args.confirm_repeats,
         "calibration.gradient_viewpoint": args.gradient_viewpoint,
         "calibration.explore": args.explore,
+        "calibration.ring_smoothing": args.ring_smoothing,
         "calibration.gradient_fit": args.gradient_fit,
         "calibration.gradient_neighbours": args.gradient_neighbours,
         "calibration.estimate_focal": True if args.estimate_focal else None,

@@ -158,6 +158,21 @@ class GradientPlanes:
         planes = np.stack([cv2.GaussianBlur(self.planes[:, :, c], (0, 0), sigma_px) for c in range(2)], axis=2)
         return GradientPlanes(np.ascontiguousarray(planes), self.mask)
 
+    def blurred_along(self, direction_uv: NDArray[np.floating], sigma_px: float) -> GradientPlanes:
+        """The gradients smoothed by a one-dimensional Gaussian of ``sigma_px`` pixels along the image
+        direction ``direction_uv`` (2,) (e.g. across a lidar's rings) and not across it; same mask."""
+        d = np.asarray(direction_uv, dtype=np.float64)
+        d = d / np.linalg.norm(d)
+        half = max(1, int(np.ceil(3.0 * sigma_px)))
+        du, dv = np.meshgrid(np.arange(-half, half + 1.0), np.arange(-half, half + 1.0))
+        along = du * d[0] + dv * d[1]
+        across = np.abs(du * -d[1] + dv * d[0])
+        kernel = np.exp(-0.5 * (along / sigma_px) ** 2) * np.maximum(0.0, 1.0 - across)  # line, 1 px wide
+        kernel /= kernel.sum()
+        planes = np.stack([cv2.filter2D(self.planes[:, :, c], -1, kernel, borderType=cv2.BORDER_REFLECT)
+                           for c in range(2)], axis=2)
+        return GradientPlanes(np.ascontiguousarray(planes), self.mask)
+
 
 class GomScorer:
     """GOM of one lidar scan (with its sphere gradients) against one image's gradients."""

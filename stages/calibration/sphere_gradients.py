@@ -63,6 +63,24 @@ def _probe_neighbours(sphere_uv: NDArray[np.float64], k: int, n_probe: int) -> t
     return np.asarray(dist)[:, 1:], offsets
 
 
+def _column_and_ring_steps(sphere_uv: NDArray[np.float64], n_probe: int = 4000,
+                           k_probe: int = 32) -> tuple[float, float]:
+    """Median column spacing (distance to the nearest neighbour) and median ring spacing (per point, the
+    smallest polar step to one of its ``k_probe`` neighbours lying more above / below than beside it) on
+    the sphere, radians; NaN where too few points (or fewer than a quarter of the probes) tell."""
+    n = sphere_uv.shape[0]
+    if n <= k_probe + 1:
+        return float("nan"), float("nan")
+    dist, offsets = _probe_neighbours(sphere_uv, k_probe, n_probe)
+    column = float(np.median(dist[:, 0]))
+    d_az, d_polar = np.abs(offsets[..., 0]), np.abs(offsets[..., 1])
+    vertical = np.where(d_polar > 2.0 * d_az, d_polar, np.inf).min(axis=1)
+    vertical = vertical[np.isfinite(vertical)]
+    if vertical.size < dist.shape[0] // 4:
+        return column, float("nan")
+    return column, float(np.median(vertical))
+
+
 def sampling_aspect(sphere_uv: NDArray[np.float64], n_probe: int = 4000, k_probe: int = 32) -> float:
     """Ratio of the scan's column spacing to its ring spacing on the sphere, in (0, 1].
 
@@ -74,17 +92,23 @@ def sampling_aspect(sphere_uv: NDArray[np.float64], n_probe: int = 4000, k_probe
     be seen. Rings denser than columns already give two-dimensional neighbourhoods at K = 8 and give
     1.0 here (a symmetric estimate that stretched them instead cost the simulated street, 0.42 deg rings
     x 0.70 deg columns, 0.06 -> 6.4 deg); 1.0 also for isotropic sampling."""
-    n = sphere_uv.shape[0]
-    if n <= k_probe + 1:
+    column, ring = _column_and_ring_steps(sphere_uv, n_probe, k_probe)
+    if not (np.isfinite(column) and np.isfinite(ring)) or column <= 0:
         return 1.0
-    dist, offsets = _probe_neighbours(sphere_uv, k_probe, n_probe)
-    column = float(np.median(dist[:, 0]))
-    d_az, d_polar = np.abs(offsets[..., 0]), np.abs(offsets[..., 1])
-    vertical = np.where(d_polar > 2.0 * d_az, d_polar, np.inf).min(axis=1)
-    vertical = vertical[np.isfinite(vertical)]
-    if column <= 0 or vertical.size < dist.shape[0] // 4:
-        return 1.0
-    return float(np.clip(column / np.median(vertical), 0.05, 1.0))
+    return float(np.clip(column / ring, 0.05, 1.0))
+
+
+def ring_spacing_rad(points_xyz: NDArray[np.floating], n_probe: int = 4000) -> float:
+    """Median angle between neighbouring rings of a scan (lidar frame, metres), radians, measured on the
+    lidar's own sphere (pole along its z axis, where a spinning lidar's rings are circles of constant
+    polar angle): KITTI (HDL-64) 0.36 deg, nuScenes (HDL-32) 1.33 deg, PJLab 0.17 deg, a VLP-16 2.0 deg.
+    For scans without rings (non-repetitive patterns) it is about the point spacing. NaN when too few
+    points tell."""
+    p = np.asarray(points_xyz, dtype=np.float64)
+    p = p[np.all(np.isfinite(p), axis=1)]
+    # optical-style axes (x right, y down, z forward) for sphere_coordinates, whose pole is -y: lidar z
+    return _column_and_ring_steps(sphere_coordinates(np.column_stack([-p[:, 1], -p[:, 2], p[:, 0]])),
+                                  n_probe)[1]
 
 
 def cross_ring_neighbours(sphere_uv: NDArray[np.float64], k: int = 8, n_probe: int = 4000) -> float:
