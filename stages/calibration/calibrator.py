@@ -26,7 +26,9 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Literal, Protocol
 
 import numpy as np
@@ -536,13 +538,16 @@ class CalibrationProblem:
             scorers, n = self._prepare(f, T_c_c0 @ T0)
             channels.append(scorers)
             sigma_px, across = self._ring_smoothing(f, T_c_c0 @ T0)
-            self.scorers.append(scorers + (self._ring_smoothed(scorers, across, sigma_px) if sigma_px > 0 else []))
+            smoothed = partial(GradientPlanes.blurred_along, direction_uv=across, sigma_px=sigma_px)
+            self.scorers.append(scorers + (self._gom_twins(scorers, smoothed) if sigma_px > 0 else []))
             self.points_used.append(n)
             self.ring_smoothing_px.append(sigma_px)
         self.explore_scorers: list[list[Scorer]] = []
         if config.explores:  # exploration blurs the channels' own planes; the ring-smoothed twins sit it out
-            self.explore_scorers = [self._explore_scorers(f, scorers)
-                                    for f, scorers in zip(frames, channels, strict=True)]
+            self.explore_scorers = [
+                self._gom_twins(scorers, partial(GradientPlanes.blurred, sigma_px=config.explore_blur_factor
+                                                 * default_blur_sigma_px(f.camera.width)), config.explore_stride)
+                for f, scorers in zip(frames, channels, strict=True)]
         self.evaluations = 0
         centre = np.zeros((1, self.dim)) + 0.5 * (self.lower + self.upper)
         init_counts = self._channel_counts(centre)
@@ -571,24 +576,16 @@ class CalibrationProblem:
         return sigma_px, across
 
     @staticmethod
-    def _ring_smoothed(scorers: list[Scorer], across: NDArray[np.float64], sigma_px: float) -> list[Scorer]:
-        """Twins of a frame's GOM scorers against its image gradients smoothed by ``sigma_px`` along the
-        image direction ``across`` the lidar's rings (one smoothed copy per frame, shared)."""
+    def _gom_twins(scorers: list[Scorer], planes_of: Callable[[GradientPlanes], GradientPlanes],
+                   stride: int = 1) -> list[Scorer]:
+        """Twins of a frame's GOM scorers, on every ``stride``-th point, against other gradient planes made
+        once from the frame's (``planes_of``: e.g. smoothed across the rings, or blurred for exploration)
+        and shared by the channels."""
         gom = [s for s in scorers if isinstance(s, GomScorer)]
         if not gom:
             return []
-        smoothed = gom[0].image.blurred_along(across, sigma_px)
-        return [s.against(smoothed) for s in gom]
-
-    def _explore_scorers(self, f: CalibrationFrame, scorers: list[Scorer]) -> list[Scorer]:
-        """A frame's GOM scorers against its image gradients blurred for exploration (one blurred copy per
-        frame, shared by the channels), on every ``explore_stride``-th point."""
-        cfg = self.config
-        gom = [s for s in scorers if isinstance(s, GomScorer)]
-        if not gom:
-            return []
-        blurred = gom[0].image.blurred(cfg.explore_blur_factor * default_blur_sigma_px(f.camera.width))
-        return [s.against(blurred, cfg.explore_stride) for s in gom]
+        planes = planes_of(gom[0].image)
+        return [s.against(planes, stride) for s in gom]
 
     def _prepare(self, f: CalibrationFrame, T_cam_lidar: Mat4) -> tuple[list[Scorer], int]:
         """Scorers of one frame (one per feature channel; Levinson: one) and its largest point count."""
