@@ -142,18 +142,18 @@ class CalibrationConfig:
             the initial guess), ``lidar`` (the lidar's own sphere, edge directions carried into the
             camera's view) or ``auto`` (default: camera while the box is within 5 deg / 0.5 m,
             lidar for wider boxes or rings too sparse for the camera sphere); evidence in
-            ``stages.calibration.calibrator.CalibrationConfig``.
+            ``stages.calibration.config.CalibrationConfig``.
         gradient_fit: ``paper`` (Algorithm 1), ``lsq`` (least-squares gradient over the neighbours) or
             ``auto`` (lsq on the lidar's sphere, paper on the camera's).
         gradient_neighbours: ``angle`` (paper), ``sampling`` (neighbours across a sparse lidar's rings) or
             ``auto`` (sampling on the lidar's sphere, angle on the camera's).
         explore: GOM swarm's first 30 iterations against image gradients blurred 3x more (wider basins):
             ``on``, ``off`` or ``auto`` (default: on for boxes wider than 5 deg or 0.5 m); evidence in
-            ``stages.calibration.calibrator.CalibrationConfig``.
+            ``stages.calibration.config.CalibrationConfig``.
         ring_smoothing: GOM also scores each frame against its image gradients smoothed across the
             lidar's rings by a third of their spacing (against aliasing by a sparse lidar's rings): ``on``,
             ``off`` or ``auto`` (default: on where that is more than the image blur, e.g. 32 or 16 beams);
-            evidence in ``stages.calibration.calibrator.CalibrationConfig``.
+            evidence in ``stages.calibration.config.CalibrationConfig``.
     """
 
     metric: Literal["gom", "nmi", "levinson"] = "gom"

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.camera_model import CameraModel
-from stages.calibration.calibrator import visible_points
+from stages.calibration.problem import visible_points
 
 
 def _grid(x_half: float, y_half: float, z: float, step: float) -> np.ndarray:

@@ -21,7 +21,8 @@ from pipeline.transforms import invert, rotation_error_deg, translation_error_m
 from readers.frames import load_tf_tree
 from readers.open import open_log
 from stages.calibration import CalibrationConfig, CalibrationFrame, calibrate
-from stages.calibration.calibrator import build_frame, resolve_auto_rules
+from stages.calibration.calibrator import resolve_auto_rules
+from stages.calibration.frame import build_frame
 from tests.conftest import SHARED_DATA
 from tests.test_calibration_synthetic import perturb
 from workflows.calibrate import solver_config

@@ -27,7 +27,8 @@ from pipeline.transforms import (
     translation_error_m,
 )
 from stages.calibration import CalibrationConfig, CalibrationFrame, calibrate, compensate_ego_motion
-from stages.calibration.calibrator import agreeing_repeats, default_blur_sigma_px
+from stages.calibration.calibrator import agreeing_repeats
+from stages.calibration.frame import default_blur_sigma_px
 from stages.image_gradients import ImageGradients, compute_image_gradients
 from stages.lidar_features import compute_lidar_feature
 
@@ -268,7 +269,7 @@ def test_no_frames_is_a_clear_error() -> None:
 
 def test_several_feature_channels_score_the_mean_of_their_channels(frame: CalibrationFrame) -> None:
     """An (N, 2) feature scores the mean of the two single-feature scores at every pose."""
-    from stages.calibration.calibrator import CalibrationProblem
+    from stages.calibration.problem import CalibrationProblem
 
     replace = dataclasses.replace
     rng_feature = compute_lidar_feature(np.asarray(frame.points_xyz), "range")
@@ -287,8 +288,8 @@ def test_ring_smoothing_adds_a_term_smoothed_across_the_rings(frame: Calibration
     """``ring_smoothing="on"`` scores each frame as the mean of GOM on its sharp image gradients and on
     them smoothed across the rings by a third of the ring spacing (0.35 deg x 500 px / 3 ~ 1 px here);
     ``auto`` leaves a scan whose rings are finer than the image blur alone."""
-    from stages.calibration.calibrator import CalibrationProblem
     from stages.calibration.metrics import GomScorer
+    from stages.calibration.problem import CalibrationProblem
 
     T_init = perturb(true_T_camera_lidar(), 2.0, 0.2, seed=4)
     x = np.random.default_rng(1).uniform(-2, 2, (16, 6)) * [1, 1, 1, 0.1, 0.1, 0.1]

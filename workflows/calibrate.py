@@ -34,8 +34,9 @@ from pipeline.transforms import (
 )
 from readers.base import LogReader
 from readers.frames import load_tf_tree
-from stages.calibration.calibrator import CalibrationConfig as SolverConfig
-from stages.calibration.calibrator import CalibrationFrame, CalibrationResult, build_frame, calibrate
+from stages.calibration.calibrator import CalibrationResult, calibrate
+from stages.calibration.config import CalibrationConfig as SolverConfig
+from stages.calibration.frame import CalibrationFrame, build_frame
 from stages.sinks import report
 from stages.sinks.tables import CALIBRATION_SCHEMA, FRAMES_SCHEMA, write_rows
 
@@ -381,8 +382,8 @@ def write_calibration(pairs: list[PairCalibration], config: Config, out_dir: Pat
 
 def landscape(pair: PairCalibration, config: Config, out_dir: Path, steps: int = 21) -> Path | None:
     """Score slices around the optimum (rotation about camera x/y, translation along x/y) as one PNG."""
-    from stages.calibration.calibrator import CalibrationProblem
     from stages.calibration.landscape import score_landscape
+    from stages.calibration.problem import CalibrationProblem
 
     if not pair.frames:
         return None

@@ -33,7 +33,7 @@ from pipeline.pairing import pair_stamps, raw_header_stamp_ns
 from readers.base import LogReader
 from readers.frames import IMAGE_TYPES, decode_camera_image, require_topic
 from stages.calibration.affine import AffineResult, affine_matrices, calibrate_affine
-from stages.calibration.calibrator import default_blur_sigma_px
+from stages.calibration.frame import default_blur_sigma_px
 from stages.image_gradients import ImageGradients, compute_image_gradients
 from stages.sinks.tables import write_rows
 

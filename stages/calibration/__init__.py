@@ -5,14 +5,9 @@ batches in numba, a particle swarm plus pattern-search polish, and ``calibrate``
 """
 
 from stages.calibration.affine import AffineResult, calibrate_affine
-from stages.calibration.calibrator import (
-    CalibrationConfig,
-    CalibrationFrame,
-    CalibrationProblem,
-    CalibrationResult,
-    calibrate,
-    compensate_ego_motion,
-)
+from stages.calibration.calibrator import CalibrationResult, calibrate
+from stages.calibration.config import CalibrationConfig
+from stages.calibration.frame import CalibrationFrame, compensate_ego_motion
 from stages.calibration.landscape import ScoreLandscape, score_landscape
 from stages.calibration.metrics import (
     METRICS,
@@ -23,6 +18,7 @@ from stages.calibration.metrics import (
     NmiScorer,
     levinson_edge_image,
 )
+from stages.calibration.problem import CalibrationProblem
 from stages.calibration.pso import SwarmResult, particle_swarm, pattern_search
 from stages.calibration.sphere_gradients import LidarGradients, compute_sphere_gradients
 

@@ -9,7 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from pipeline.errors import ConfigError
-from stages.calibration.calibrator import CalibrationProblem
+from stages.calibration.problem import CalibrationProblem
 
 
 @dataclass

@@ -1,0 +1,276 @@
+"""Settings of a lidar-camera calibration (``CalibrationConfig``), with the evidence behind each default."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from pipeline.errors import ConfigError
+from stages.calibration.metrics import METRICS
+
+
+@dataclass
+class CalibrationConfig:
+    """Settings of ``calibrate``.
+
+    Attributes:
+        metric: ``gom`` | ``nmi`` | ``levinson``.
+        search_deg, search_m: half-widths of the search box around the initial guess.
+        n_particles, max_iterations, stall_iterations, min_iterations, score_tolerance: particle
+            swarm (paper: 200 particles); after ``min_iterations`` it stops when the best score has
+            gained less than ``score_tolerance`` for ``stall_iterations`` iterations. ``None``: 1e-4 for
+            GOM, 1e-5 for NMI and Levinson (whose scores span less). GOM at 1e-4 instead of 1e-5 gave
+            the same estimates in less time: KITTI 0.133 deg / 7.2 cm in 31 s vs 32 s; PJLab rig1 37 vs
+            50 s; nuScenes joint 28 vs 32 s; KITTI from 5 deg / 0.5 m 10 of 10 seeds in 36-56 s vs
+            41-64 s; simulated street 0.069 deg / 1.5 cm vs 0.060 / 1.0; the polish refines the rest.
+        seed: seed of the first run; repeats use seed + 1, seed + 2, ...
+        repeats: seeded runs; the best is returned and the spread of all runs (up to
+            ``confirm_repeats`` more while no run confirms the best) is the uncertainty.
+        polish: run the pattern search from the swarm's best.
+        keep_fraction: GOM only: keep this fraction of the in-view points with the largest lidar
+            gradient magnitude (points with zero magnitude never count in GOM and are always dropped).
+        sphere_k: sphere neighbours for lidar gradients (paper: 8).
+        normalise_gradients: unit neighbour directions in Algorithm 1 (see ``sphere_kernels``).
+        turn_gradients_with_roll: turn the lidar gradient orientations by each candidate's roll about
+            the optical axis relative to the initial guess (the paper keeps them fixed).
+        lidar_magnitude: GOM weight of a lidar point: ``paper`` (Algorithm 1, sum of absolute
+            differences) or ``vector`` (length of the gradient vector; isotropic noise cancels).
+        estimate_focal: also estimate a common scale of fx and fy (paper dataset I).
+        focal_search: half-width of the focal scale search (fraction).
+        min_points: fewer projected points than this at the optimum is an error.
+        min_overlap_fraction: a pose under which a frame projects fewer than this fraction of the
+            points it projects at the initial guess scores 0 for that frame. Without it the
+            normalised GOM can peak where only a few hundred points remain in view (KITTI, 10 deg
+            box: 0.767 at 19 deg off with 763 + 208 points vs 0.760 at the truth with 10924 + 4248).
+        nmi_bins: histogram bins per axis for NMI.
+        levinson_blur_px, levinson_min_jump_m: Levinson edge blur and depth-jump threshold.
+        flat_fraction: optimum is "flat" when perturbing it by ``flat_probe_deg`` lowers the score
+            by less than this fraction of its distance to ``chance_score``.
+        gom_suspect_below: a GOM optimum below this is ``suspect``. The paper calls < 0.5 worse than
+            chance; the best of thousands of poses on an unrelated image reaches ~0.5-0.55, while
+            real matches score 0.6-0.8 (KITTI 0.77, nuScenes 0.65, PJLab 0.60, synthetic 0.85).
+        ok_rotation_deg, ok_translation_m: changes below both keep the verdict ``ok``.
+        agree_rotation_deg, agree_translation_m: with ``repeats`` >= 2 the returned run must be confirmed
+            by another seeded run landing within both of it (the accuracy asked of the real logs: 0.5 deg,
+            15 cm); while it is not, up to ``confirm_repeats`` further seeded runs are made (they only
+            confirm: the estimate stays the best of the first ``repeats``; letting them replace it took
+            PJLab rig1 from 0.19 deg / 27 cm to 0.64 / 59 on a score 0.0005 higher), and if none
+            confirms it the verdict is ``suspect`` (optima of similar score elsewhere). Default settings,
+            closest other run: KITTI 0.09 deg / 1.7 cm, nuScenes 0.27 / 10.9, PJLab rig2 0.48 / 12.2,
+            simulated street and open yard (intensity) < 0.01 deg / 0.2 cm; not confirmed: PJLab rig1
+            (0.47 / 50; its translation is 27 cm off) and simulated 16- and 32-beam lidars from 2 deg /
+            10 cm (runs 1-5 deg / 40-65 cm apart). KITTI from 5 deg / 0.5 m in a 10 deg / 1 m box:
+            without further runs 4 of 10 seeds ended unconfirmed although all 10 were within 0.3 deg /
+            10 cm (the other runs found other optima).
+        confirm_repeats: further seeded runs allowed while no run confirms the best of the first
+            ``repeats``.
+        occlusion_filter: at preparation (initial guess, after ego-motion) drop lidar points hidden from
+            the camera behind nearer lidar points, per frame, with the coarse z-buffer of
+            ``stages.colorize.unoccluded`` (cells of ``occlusion_cell_px`` pixels; a point is kept when
+            its depth <= (1 + ``occlusion_rel_tol``) * nearest in its cell + ``occlusion_abs_tol_m``).
+            Points outside the image at the initial guess are kept. Dropped before the sphere gradients.
+            Off by default: it hurt the real logs (defaults, CLI: KITTI 0.14 deg / 8.0 cm -> 0.81 / 29.8;
+            nuScenes joint 0.37 / 22.3 -> 1.55 / 50.4; PJLab rig1 6.7 / 29 -> 3.1 / 53) and was mixed on
+            the simulated street (960x540, 4 frames: seed 1 0.92 / 21.5 -> 0.69 / 22.0; seed 2
+            0.51 / 10.4 -> 0.78 / 3.3; open, intensity 1.51 / 14.2 -> 1.50 / 14.1).
+        occlusion_cell_px, occlusion_rel_tol, occlusion_abs_tol_m: z-buffer cell size (pixels) and
+            depth tolerances (fraction, metres).
+        gradient_viewpoint: where the lidar gradients are computed. ``camera`` (paper 3.3): on a sphere
+            centred on the camera at the initial guess. ``lidar``: on the lidar's own sphere (origin at
+            capture, where neighbours never straddle a depth edge and rings / columns are exact), the
+            edge direction stepped along the point's surface and carried into the camera view with
+            parallax; it does not depend on the initial translation. ``auto`` (default): ``camera``
+            while the box is not wider than ``auto_lidar_viewpoint_above_deg`` / ``_m`` (the initial
+            guess is trusted, e.g. a drifted factory calibration), ``lidar`` for wider boxes
+            (``wide_box``), and ``lidar`` as well when
+            the scan's rings are too sparse for the camera sphere (``calibrate`` applies
+            ``resolve_auto_rules``: fewer than 2 of 8 sphere neighbours on other rings). Evidence
+            (range+normals, 3 repeats, lidar view with the auto fit and neighbours vs camera view) from
+            each log's tf, box 5 deg / 0.5 m: KITTI 0.189 deg / 3.7 cm vs 0.133 / 7.2; PJLab rig1 0.85 /
+            45 vs 0.186 / 27; nuScenes joint+ego 0.53 deg vs 1.52 (range: 0.51 vs 0.37; without
+            ego-motion 0.99 vs 1.23 with range on the camera's); simulated street (intensity) 0.046 /
+            0.8 vs 0.249 / 1.0; simulated open yard (intensity) 3.71 / 36 vs 0.132 / 1.5. From
+            KITTI starts 5 deg / 0.5 m off, box 10 deg / 1 m: 10 of 10 seeds within 0.3 deg / 10 cm
+            (0.12-0.18 deg / 3-6 cm) vs 0 of 10 (``bench_gom.py --seeds 10``). Neither view wins
+            everywhere; the camera view is never far off from a close start, the lidar view is the one
+            that survives a far start. A box wide in rotation only (KITTI, 5 seeds from 5 deg / 10 cm
+            off, box 10 deg / 0.5 m): camera view 2 of 5 within 0.3 deg / 10 cm (up to 2.2 deg / 63 cm),
+            lidar view 5 of 5 (0.09-0.23 deg / 3-7 cm).
+        auto_lidar_viewpoint_above_deg, auto_lidar_viewpoint_above_m: a box wider than either (``search_deg``
+            or ``search_m``) is wide: the ``auto`` viewpoint and exploration then apply.
+        gradient_fit: ``paper`` (Algorithm 1, ``sum dv dx``) or ``lsq`` (least-squares gradient over the
+            K neighbours; unbiased when rings are further apart than columns, see ``sphere_kernels``), or
+            ``auto`` (default): ``lsq`` with the lidar viewpoint, ``paper`` with the camera's. Lidar
+            view (angle neighbours), lsq vs paper: simulated street (intensity, box 10 deg / 1 m) 0.060
+            deg / 1.0 cm vs 0.123 / 0.4; KITTI seeds 3, 7, 8 from 5 deg / 0.5 m 0.28 / 7.2, 0.20 / 5.4,
+            2.05 / 67 vs 1.17 / 99, 0.54 / 23, 0.49 / 37 (8 vs 6 of 10 seeds); nuScenes 2.83 vs 6.67 deg.
+        neighbours_by: ``angle`` (paper: K nearest on the sphere), ``sampling`` (polar angle scaled by
+            the scan's column / ring spacing, ``sphere_gradients.sampling_aspect``, so that a sparse
+            lidar's neighbours include the rings above and below) or ``auto`` (default): ``sampling``
+            on the lidar's own sphere, ``angle`` on the camera's (and for Levinson's depth jumps).
+            Lidar view, lsq: KITTI (aspect 0.49) from 5 deg / 0.5 m 10 of 10 seeds vs 8 of 10;
+            nuScenes (32 beams, aspect 0.25) 0.53 vs 2.83 deg. On the camera's sphere it hurt KITTI
+            (0.133 deg / 7.2 cm -> 0.349 / 11.6) and helped nuScenes (1.52 -> 0.71 deg).
+        explore: GOM only: the swarm's first ``explore_iterations`` (at most a third of ``max_iterations``)
+            score poses against the image gradients blurred by a further ``explore_blur_factor`` x the default
+            blur (wider basins of attraction), on every ``explore_stride``-th point; then every particle's best
+            is re-scored on the real objective and the swarm flies on (``pso.particle_swarm``). The box and the
+            lidar gradients stay as they are (the removed coarse-to-fine schedule shrank the box around a
+            blurred optimum). ``on``, ``off`` or ``auto`` (default): on in a ``wide_box`` (a far start with
+            several optima in it). Evidence, box 10 deg / 1 m: KITTI from 5 deg / 0.5 m, seeded runs in the
+            truth's basin: seed 7's start 5 of 6 vs 3 of 6, seed 2's 6 of 6 vs 3 of 6; 10 of 10 seeds within 0.3
+            deg / 10 cm either way, 25-44 s per seed vs 35-56 s (fewer confirming runs needed); simulated street
+            (64 beams) 3 of 3 runs vs 1 of 6, ``recalibrated`` 0.049 deg / 0.9 cm in 27 s vs ``suspect`` 0.060 /
+            1.0 in 75 s; 32 beams 0.75 deg / 22 cm either way; 16 beams 1.99 deg / 37 cm ``recalibrated`` vs 4.9
+            deg / 157 cm ``suspect`` (its runs agree on a biased optimum). With the default 5 deg / 0.5 m box it
+            moved KITTI from 0.13 deg / 7.2 cm to 0.44 / 18.5 (score 0.71385 vs 0.71377: a flat ridge) and did
+            not help PJLab rig1, hence off there. Off as well for scans whose rings are too sparse for the
+            camera sphere (``resolve_auto_rules``; nuScenes' 32 beams): nuScenes joint+ego in a 10 deg / 1 m box
+            0.86 deg / 32 cm ``suspect`` vs 0.53 / 37 ``recalibrated``. The simulated 16- and 32-beam scans
+            (columns 0.7 deg apart) are not sparse by that rule and explore (numbers above).
+        explore_blur_factor, explore_iterations, explore_stride: the exploration phase's extra blur
+            (times ``default_blur_sigma_px`` of the image width), length and point subsampling (stride 1
+            vs 4 on the simulated street: 3 of 6 runs in the truth's basin vs 2 of 3, runs 11 vs 7 s).
+        ring_smoothing: GOM only: each frame is also scored against its image gradients smoothed by a
+            one-dimensional Gaussian across the lidar's rings (the lidar's z axis as the camera sees it),
+            sigma ``ring_smoothing_fraction`` x the ring spacing in pixels (``ring_spacing_rad`` x focal
+            length); the frame's score is the mean of the sharp and the smoothed terms. A sparse lidar
+            samples the image's horizontal edges only once per ring, so GOM on the sharp image is aliased:
+            on a simulated VLP-16 (16 rings 2 deg apart, 1800 columns, street) all 5 seeded starts 2 deg /
+            10 cm off ended one ring off in pitch (1.92-2.01 deg / 36-40 cm, every one ``recalibrated``).
+            The smoothed term alone fixes that but blurs away precision (nuScenes joint+ego 1.45 deg with
+            the image smoothed this way instead); both together keep the sharp optimum inside the
+            smoothed basin. ``on``, ``off`` or ``auto`` (default): on where the sigma exceeds the image's
+            own blur (``default_blur_sigma_px``): HDL-32 (nuScenes 9.8 px vs 2.6) and the simulated 16- and
+            32-beam scans, not KITTI (1.5 vs 2), PJLab (2.1 vs 3.1) or the simulated 64 beams. Evidence, on
+            vs off: simulated VLP-16 from 2 deg / 10 cm, 4 of 5 seeds at 0.13-0.16 deg / 17-18 cm (its
+            translation is biased by 18 cm at the truth) vs 0 of 5; nuScenes joint+ego 0.58 deg / 31 cm vs
+            0.53 / 37 (box 10 deg / 1 m: 0.67 / 22 vs 0.53 / 37), without ego-motion 0.60 / 26
+            ``recalibrated`` vs 0.98 / 53 ``suspect``. Runtime: the GOM terms double (nuScenes 44 vs 27 s).
+    """
+
+    metric: str = "gom"
+    search_deg: float = 5.0
+    search_m: float = 0.5
+    n_particles: int = 200
+    max_iterations: int = 100
+    stall_iterations: int = 10
+    min_iterations: int = 20
+    score_tolerance: float | None = None
+    seed: int = 0
+    repeats: int = 1
+    polish: bool = True
+    keep_fraction: float = 0.5
+    sphere_k: int = 8
+    normalise_gradients: bool = False
+    lidar_magnitude: str = "paper"
+    turn_gradients_with_roll: bool = True
+    estimate_focal: bool = False
+    focal_search: float = 0.05
+    min_points: int = 100
+    min_overlap_fraction: float = 0.5
+    nmi_bins: int = 32
+    levinson_blur_px: float = 3.0
+    levinson_min_jump_m: float = 0.3
+    flat_probe_deg: float = 1.0
+    flat_fraction: float = 0.01
+    gom_suspect_below: float = 0.55
+    ok_rotation_deg: float = 0.2
+    ok_translation_m: float = 0.02
+    agree_rotation_deg: float = 0.5
+    agree_translation_m: float = 0.15
+    confirm_repeats: int = 3
+    occlusion_filter: bool = False
+    occlusion_cell_px: int = 4
+    occlusion_rel_tol: float = 0.1
+    occlusion_abs_tol_m: float = 0.1
+    gradient_viewpoint: str = "auto"
+    auto_lidar_viewpoint_above_deg: float = 5.0
+    auto_lidar_viewpoint_above_m: float = 0.5
+    gradient_fit: str = "auto"
+    neighbours_by: str = "auto"
+    explore: str = "auto"
+    explore_blur_factor: float = 3.0
+    explore_iterations: int = 30
+    explore_stride: int = 4
+    ring_smoothing: str = "auto"
+    ring_smoothing_fraction: float = 1.0 / 3.0
+
+    @property
+    def swarm_tolerance(self) -> float:
+        """``score_tolerance``, or the metric's default when it is None."""
+        if self.score_tolerance is not None:
+            return self.score_tolerance
+        return 1e-4 if self.metric == "gom" else 1e-5
+
+    @property
+    def wide_box(self) -> bool:
+        """Whether the search box is wider than the auto rules' thresholds in rotation or translation."""
+        return (self.search_deg > self.auto_lidar_viewpoint_above_deg
+                or self.search_m > self.auto_lidar_viewpoint_above_m)
+
+    @property
+    def explores(self) -> bool:
+        """Whether the swarm first explores on blurred image gradients (``explore`` resolved)."""
+        if self.metric != "gom" or self.explore == "off" or self.explore_phase_iterations < 1:
+            return False
+        return self.explore == "on" or self.wide_box
+
+    @property
+    def explore_phase_iterations(self) -> int:
+        """Iterations of the exploration phase: ``explore_iterations``, at most a third of
+        ``max_iterations`` so that the swarm always flies most of its course on the real objective."""
+        return min(self.explore_iterations, self.max_iterations // 3)
+
+    @property
+    def viewpoint(self) -> str:
+        """The gradient viewpoint in force: ``gradient_viewpoint`` with ``auto`` resolved by the box."""
+        if self.gradient_viewpoint != "auto":
+            return self.gradient_viewpoint
+        return "lidar" if self.wide_box else "camera"
+
+    def neighbours_on(self, sphere: str) -> str:
+        """The sphere-neighbour rule in force on the ``camera`` or ``lidar`` sphere (``auto``: sampling
+        on the lidar's own sphere, where rings and columns are exact, the paper's angle otherwise)."""
+        if self.neighbours_by != "auto":
+            return self.neighbours_by
+        return "sampling" if sphere == "lidar" else "angle"
+
+    @property
+    def fit(self) -> str:
+        """The lidar gradient fit in force: ``gradient_fit`` with ``auto`` resolved by the viewpoint."""
+        if self.gradient_fit != "auto":
+            return self.gradient_fit
+        return "lsq" if self.viewpoint == "lidar" else "paper"
+
+    def validate(self) -> None:
+        if self.metric not in METRICS:
+            raise ConfigError(f"unknown metric {self.metric!r}; expected one of {', '.join(METRICS)}")
+        if not (0 < self.search_deg <= 45 and 0 < self.search_m <= 5):
+            raise ConfigError("search box must be 0 < search_deg <= 45 and 0 < search_m <= 5")
+        if self.n_particles < 2 or self.max_iterations < 1 or self.repeats < 1 or self.confirm_repeats < 0:
+            raise ConfigError("need n_particles >= 2, max_iterations >= 1, repeats >= 1 and confirm_repeats >= 0")
+        if self.explore not in ("auto", "on", "off"):
+            raise ConfigError(f"explore must be 'auto', 'on' or 'off', got {self.explore!r}")
+        if self.ring_smoothing not in ("auto", "on", "off") or not self.ring_smoothing_fraction > 0:
+            raise ConfigError(f"ring_smoothing must be 'auto', 'on' or 'off' (got {self.ring_smoothing!r}) and "
+                              "ring_smoothing_fraction > 0")
+        if not self.explore_blur_factor > 0 or self.explore_iterations < 1 or self.explore_stride < 1:
+            raise ConfigError("need explore_blur_factor > 0, explore_iterations >= 1 and explore_stride >= 1")
+        if self.score_tolerance is not None and not self.score_tolerance >= 0:
+            raise ConfigError("score_tolerance must be >= 0")
+        if not 0 <= self.min_overlap_fraction < 1:
+            raise ConfigError("min_overlap_fraction must be in [0, 1)")
+        if not 0 < self.keep_fraction <= 1:
+            raise ConfigError("keep_fraction must be in (0, 1]")
+        if self.lidar_magnitude not in ("paper", "vector"):
+            raise ConfigError("lidar_magnitude must be 'paper' or 'vector'")
+        if not 0 < self.focal_search < 0.5:
+            raise ConfigError("focal_search must be in (0, 0.5)")
+        if self.gradient_viewpoint not in ("auto", "camera", "lidar"):
+            raise ConfigError("gradient_viewpoint must be 'auto', 'camera' or 'lidar'")
+        if self.gradient_fit not in ("auto", "paper", "lsq"):
+            raise ConfigError("gradient_fit must be 'auto', 'paper' or 'lsq'")
+        if self.neighbours_by not in ("auto", "angle", "sampling"):
+            raise ConfigError("neighbours_by must be 'auto', 'angle' or 'sampling'")
+        if self.occlusion_cell_px < 1 or self.occlusion_rel_tol < 0 or self.occlusion_abs_tol_m < 0:
+            raise ConfigError("need occlusion_cell_px >= 1 and non-negative occlusion tolerances")

@@ -1,0 +1,311 @@
+"""The calibration objective: frames prepared once (culled, ordered, lidar gradients, scorers per feature
+channel and their smoothed twins) and scored for whole batches of candidate extrinsics."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from functools import partial
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from pipeline.camera_model import CameraModel
+from pipeline.errors import ProcessingError
+from pipeline.transforms import apply
+from stages.calibration.config import CalibrationConfig
+from stages.calibration.frame import CalibrationFrame, Mat4, compensate_ego_motion, default_blur_sigma_px
+from stages.calibration.metrics import (
+    GomScorer,
+    GradientPlanes,
+    LevinsonScorer,
+    MetricBatch,
+    NmiScorer,
+    levinson_edge_image,
+)
+from stages.calibration.pso import SwarmResult, particle_swarm, pattern_search
+from stages.calibration.sphere_gradients import (
+    camera_sphere_neighbours,
+    compute_sphere_gradients,
+    depth_discontinuities,
+    lidar_view_gradients,
+    ring_spacing_rad,
+)
+from stages.colorize import unoccluded
+
+
+class Scorer(Protocol):
+    def score(self, T_camera_lidar_batch: NDArray[np.floating],
+              focal_scale: NDArray[np.floating] | None = None) -> MetricBatch: ...
+
+
+def delta_transforms(x: NDArray[np.floating]) -> NDArray[np.float64]:
+    """(P, 4, 4) ``T_delta`` from parameters (P, >=6): rotation vector (deg) and translation (m)."""
+    x = np.atleast_2d(np.asarray(x, dtype=np.float64))
+    T = np.tile(np.eye(4), (x.shape[0], 1, 1))
+    T[:, :3, :3] = Rotation.from_rotvec(x[:, :3], degrees=True).as_matrix()
+    T[:, :3, 3] = x[:, 3:6]
+    return T
+
+
+def _view_cull(points_cam: NDArray[np.float64], camera: CameraModel, margin_rad: float,
+               margin_m: float) -> NDArray[np.bool_]:
+    """Points that could enter the image for any pose in the search box (conservative)."""
+    x, y, z = points_cam[:, 0], points_cam[:, 1], points_cam[:, 2]
+    rng = np.linalg.norm(points_cam, axis=1)
+    slack = margin_rad + np.arctan2(margin_m, np.maximum(rng - margin_m, 1e-3)) + np.radians(2.0)
+    if camera.distortion_model == "cylindrical":
+        elev = np.abs(np.arctan2(y, np.hypot(x, z)))
+        half_v = np.arctan(max(camera.cy, camera.height - camera.cy) / camera.fy)
+        return np.asarray(elev < half_v + slack)
+    if camera.distortion_model == "equidistant":
+        return np.asarray(np.arctan2(np.hypot(x, y), z) < np.radians(90.0) + slack)
+    uv_corners = np.array([[0, 0], [camera.width - 1, 0], [0, camera.height - 1],
+                           [camera.width - 1, camera.height - 1], [camera.cx, 0],
+                           [camera.cx, camera.height - 1],
+                           [0, camera.cy], [camera.width - 1, camera.cy]], dtype=np.float64)
+    rays = camera.unproject(uv_corners)
+    half_u = float(np.max(np.abs(np.arctan2(rays[:, 0], rays[:, 2]))))
+    half_v = float(np.max(np.abs(np.arctan2(rays[:, 1], rays[:, 2]))))
+    az = np.abs(np.arctan2(x, z))
+    el = np.abs(np.arctan2(y, z))
+    front = z > 0
+    return np.asarray(front & (az < half_u + slack) & (el < half_v + slack))
+
+
+def visible_points(points_cam: NDArray[np.float64], camera: CameraModel, cell_px: int, rel_tol: float,
+                   abs_tol_m: float) -> NDArray[np.bool_]:
+    """(N,) False for camera-frame points (metres) that project into the image behind nearer points
+    (coarse z-buffer ``stages.colorize.unoccluded``); points outside the image are kept (True)."""
+    uv, valid = camera.project(points_cam)
+    keep = np.ones(points_cam.shape[0], dtype=bool)
+    idx = np.flatnonzero(valid)
+    if idx.size:
+        keep[idx] = unoccluded(uv[idx], points_cam[idx, 2], (camera.height, camera.width), cell_px, rel_tol,
+                               abs_tol_m)
+    return keep
+
+
+def _image_order(points_cam: NDArray[np.float64], camera: CameraModel) -> NDArray[np.int64]:
+    """Order of points by image row band then column at the initial pose, so that the kernels read
+    the image with cache locality (does not change any score)."""
+    uv, _ = camera.project(points_cam)
+    uv = np.nan_to_num(uv, nan=-1.0, posinf=-1.0, neginf=-1.0)
+    return np.asarray(np.lexsort((uv[:, 0], np.floor(uv[:, 1] / 4.0))), dtype=np.int64)
+
+
+class CalibrationProblem:
+    """Prepared frames and the batched objective ``evaluate(x (P, D)) -> (P,)`` of a calibration."""
+
+    def __init__(self, frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
+                 config: CalibrationConfig) -> None:
+        config.validate()
+        if not frames:
+            raise ProcessingError("no paired lidar/camera frames to calibrate from")
+        T0 = np.asarray(T_camera_lidar_init, dtype=np.float64)
+        if T0.shape != (4, 4) or not np.all(np.isfinite(T0)):
+            raise ProcessingError("initial T_camera_lidar must be a finite 4x4 transform")
+        self.config = config
+        self.T_init = T0
+        self.dim = 7 if config.estimate_focal else 6
+        s_deg, s_m = config.search_deg, config.search_m
+        half = [s_deg] * 3 + [s_m] * 3 + ([config.focal_search] if config.estimate_focal else [])
+        centre = [0.0] * 6 + ([1.0] if config.estimate_focal else [])
+        self.lower = np.asarray(centre) - np.asarray(half)
+        self.upper = np.asarray(centre) + np.asarray(half)
+        self.frames = frames
+        self.T_camera_camera0 = [np.asarray(f.T_camera_camera0, dtype=np.float64) for f in frames]
+        self.scorers: list[list[Scorer]] = []  # per frame: one per feature channel, then any ring-smoothed twins
+        self.points_used: list[int] = []
+        self.ring_smoothing_px: list[float] = []  # per frame, 0: none
+        channels: list[list[Scorer]] = []
+        for f, T_c_c0 in zip(frames, self.T_camera_camera0, strict=True):
+            scorers, n = self._prepare(f, T_c_c0 @ T0)
+            channels.append(scorers)
+            sigma_px, across = self._ring_smoothing(f, T_c_c0 @ T0)
+            smoothed = partial(GradientPlanes.blurred_along, direction_uv=across, sigma_px=sigma_px)
+            self.scorers.append(scorers + (self._gom_twins(scorers, smoothed) if sigma_px > 0 else []))
+            self.points_used.append(n)
+            self.ring_smoothing_px.append(sigma_px)
+        self.explore_scorers: list[list[Scorer]] = []
+        if config.explores:  # exploration blurs the channels' own planes; the ring-smoothed twins sit it out
+            self.explore_scorers = [
+                self._gom_twins(scorers, partial(GradientPlanes.blurred, sigma_px=config.explore_blur_factor
+                                                 * default_blur_sigma_px(f.camera.width)), config.explore_stride)
+                for f, scorers in zip(frames, channels, strict=True)]
+        self.evaluations = 0
+        centre = np.zeros((1, self.dim)) + 0.5 * (self.lower + self.upper)
+        init_counts = self._channel_counts(centre)
+        self.min_counts = [np.maximum(config.min_points, np.floor(config.min_overlap_fraction * c)).astype(np.int64)
+                           for c in init_counts]
+
+    def _ring_smoothing(self, f: CalibrationFrame, T_cam_lidar: Mat4) -> tuple[float, NDArray[np.float64]]:
+        """Across-ring smoothing of a frame's image gradients (``CalibrationConfig.ring_smoothing``): its
+        Gaussian sigma in pixels (0: none) and the image direction (2,) across the lidar's rings (its z axis
+        seen by the camera near the principal point)."""
+        cfg = self.config
+        none = (0.0, np.zeros(2))
+        if cfg.metric != "gom" or cfg.ring_smoothing == "off":
+            return none
+        up = np.asarray(T_cam_lidar, dtype=np.float64)[:3, :3] @ np.array([0.0, 0.0, 1.0])
+        if np.hypot(up[0], up[1]) < 0.3:  # the camera looks along the lidar's axis: rings circle the image
+            return none
+        across = np.array([f.camera.fx * up[0], f.camera.fy * up[1]])
+        px_per_rad = float(np.linalg.norm(across) / np.hypot(up[0], up[1]))
+        ring = ring_spacing_rad(f.points_xyz)
+        if not np.isfinite(ring):
+            return none
+        sigma_px = cfg.ring_smoothing_fraction * ring * px_per_rad
+        if cfg.ring_smoothing == "auto" and sigma_px <= default_blur_sigma_px(f.camera.width):
+            return none
+        return sigma_px, across
+
+    @staticmethod
+    def _gom_twins(scorers: list[Scorer], planes_of: Callable[[GradientPlanes], GradientPlanes],
+                   stride: int = 1) -> list[Scorer]:
+        """Twins of a frame's GOM scorers, on every ``stride``-th point, against other gradient planes made
+        once from the frame's (``planes_of``: e.g. smoothed across the rings, or blurred for exploration)
+        and shared by the channels."""
+        gom = [s for s in scorers if isinstance(s, GomScorer)]
+        if not gom:
+            return []
+        planes = planes_of(gom[0].image)
+        return [s.against(planes, stride) for s in gom]
+
+    def _prepare(self, f: CalibrationFrame, T_cam_lidar: Mat4) -> tuple[list[Scorer], int]:
+        """Scorers of one frame (one per feature channel; Levinson: one) and its largest point count."""
+        cfg = self.config
+        pts = np.asarray(f.points_xyz, dtype=np.float64)
+        feat = np.asarray(f.feature, dtype=np.float64)
+        feat = feat[:, None] if feat.ndim == 1 else feat
+        if pts.ndim != 2 or pts.shape[1] != 3 or feat.ndim != 2 or feat.shape[0] != pts.shape[0]:
+            raise ProcessingError(
+                f"frame {f.label!r}: points {pts.shape} and feature {feat.shape} do not match")
+        raw = pts
+        pts = compensate_ego_motion(pts, f.T_lidar_motion, f.point_time_offsets_s, f.twist_lidar)
+        good = np.all(np.isfinite(pts), axis=1) & np.all(np.isfinite(feat), axis=1)
+        pts, feat, raw = pts[good], feat[good], raw[good]
+        keep = _view_cull(apply(T_cam_lidar, pts), f.camera, np.radians(cfg.search_deg) * np.sqrt(3),
+                          cfg.search_m * np.sqrt(3))
+        pts, feat, raw = pts[keep], feat[keep], raw[keep]
+        if cfg.occlusion_filter:
+            keep = visible_points(apply(T_cam_lidar, pts), f.camera, cfg.occlusion_cell_px,
+                                  cfg.occlusion_rel_tol, cfg.occlusion_abs_tol_m)
+            pts, feat, raw = pts[keep], feat[keep], raw[keep]
+        order = _image_order(apply(T_cam_lidar, pts), f.camera)
+        pts, feat, raw = pts[order], feat[order], raw[order]
+        if pts.shape[0] <= cfg.sphere_k:
+            raise ProcessingError(f"frame {f.label!r}: only {pts.shape[0]} lidar points could be seen by the "
+                                  "camera in the search box")
+        if cfg.metric == "nmi":
+            if f.intensity is None:
+                raise ProcessingError(f"frame {f.label!r}: NMI needs the image intensity")
+            return [NmiScorer(pts, feat[:, c], f.intensity, f.camera, f.mask, cfg.nmi_bins)
+                    for c in range(feat.shape[1])], pts.shape[0]
+        if cfg.metric == "levinson":  # depth discontinuities: the feature does not enter
+            around = camera_sphere_neighbours(pts, T_cam_lidar, cfg.sphere_k, cfg.neighbours_on("camera"))
+            weight = depth_discontinuities(pts, around, cfg.levinson_min_jump_m)
+            sel = weight > 0
+            edges = levinson_edge_image(f.gradients.magnitude, cfg.levinson_blur_px)
+            return [LevinsonScorer(pts[sel], weight[sel], edges, f.camera, f.mask)], int(sel.sum())
+        scorers: list[Scorer] = []
+        counts: list[int] = []
+        neighbours: NDArray[np.int64] | None = None  # one sphere search per frame, shared by the channels
+        image = GradientPlanes.of(f.gradients.gx, f.gradients.gy, f.camera, f.mask)  # shared too
+        for c in range(feat.shape[1]):
+            scorer, n, neighbours = self._gom_scorer(f, raw, pts, feat[:, c], T_cam_lidar, image, neighbours)
+            scorers.append(scorer)
+            counts.append(n)
+        return scorers, max(counts)
+
+    def _gom_scorer(self, f: CalibrationFrame, raw: NDArray[np.float64], pts: NDArray[np.float64],
+                    feat: NDArray[np.float64], T_cam_lidar: Mat4, image: GradientPlanes,
+                    neighbours: NDArray[np.int64] | None) -> tuple[Scorer, int, NDArray[np.int64]]:
+        """GOM scorer of one feature channel (lidar gradients, paper 3.3, and the point selection) against
+        the frame's ``image`` gradients, its point count and the sphere neighbours it used
+        (``neighbours``: another channel's, or None)."""
+        cfg = self.config
+        if cfg.viewpoint == "lidar":
+            grads = lidar_view_gradients(raw, pts, feat, T_cam_lidar,
+                                         None if f.T_lidar_motion is None else f.T_lidar_motion[:3, :3],
+                                         k=cfg.sphere_k, fit=cfg.fit, neighbours_by=cfg.neighbours_on("lidar"),
+                                         neighbours=neighbours)
+        else:
+            grads = compute_sphere_gradients(pts, feat, T_cam_lidar, k=cfg.sphere_k,
+                                             normalise=cfg.normalise_gradients, fit=cfg.fit,
+                                             neighbours_by=cfg.neighbours_on("camera"), neighbours=neighbours)
+        magnitude = grads.magnitude if cfg.lidar_magnitude == "paper" else np.hypot(grads.gx, grads.gy)
+        sel = magnitude > 0
+        if cfg.keep_fraction < 1.0 and np.any(sel):
+            cut = np.quantile(magnitude[sel], 1.0 - cfg.keep_fraction)
+            sel &= magnitude >= cut
+        scorer = GomScorer(pts[sel], grads.gx[sel], grads.gy[sel], magnitude[sel], image, f.camera,
+                           T_cam_lidar[:3, :3] if cfg.turn_gradients_with_roll else None)
+        return scorer, int(sel.sum()), grads.neighbours
+
+    def T_camera_lidar(self, x: NDArray[np.floating]) -> Mat4:
+        """The extrinsic of parameters x (D,)."""
+        return np.asarray(delta_transforms(np.asarray(x)[None])[0] @ self.T_init)
+
+    def x_of(self, T_camera_lidar: Mat4) -> NDArray[np.float64]:
+        """Parameters (6,) of an extrinsic (focal scale not included)."""
+        T_delta = np.asarray(T_camera_lidar) @ np.linalg.inv(self.T_init)
+        rv = Rotation.from_matrix(T_delta[:3, :3]).as_rotvec(degrees=True)
+        return np.concatenate([rv, T_delta[:3, 3]])
+
+    def _batches(self, x: NDArray[np.floating], explore: bool = False) -> list[list[MetricBatch]]:
+        """Metric batches per frame and feature channel for parameters (P, D) (``explore``: against the
+        blurred image gradients)."""
+        x = np.atleast_2d(np.asarray(x, dtype=np.float64))
+        T_c0 = delta_transforms(x) @ self.T_init
+        focal = x[:, 6] if x.shape[1] > 6 else None
+        self.evaluations += x.shape[0]
+        return [[scorer.score(T_c_c0 @ T_c0, focal) for scorer in scorers]
+                for scorers, T_c_c0 in zip(self.explore_scorers if explore else self.scorers,
+                                           self.T_camera_camera0, strict=True)]
+
+    def _channel_counts(self, x: NDArray[np.floating]) -> list[NDArray[np.int64]]:
+        """Projected points per frame and channel of the first candidate of x."""
+        return [np.array([b.counts[0] for b in frame], dtype=np.int64) for frame in self._batches(x)]
+
+    def frame_scores(self, x: NDArray[np.floating], explore: bool = False) -> tuple[
+            NDArray[np.float64], NDArray[np.int64]]:
+        """Per-frame scores (mean over the frame's scorers: feature channels and their ring-smoothed twins;
+        a scorer projecting fewer points than its minimum scores 0) and projected-point counts (largest
+        over scorers), each (P, F), of parameters (P, D)."""
+        batches = self._batches(x, explore)
+        per_point = self.config.explore_stride if explore else 1  # points one explore point stands for
+        n = np.atleast_2d(np.asarray(x)).shape[0]
+        scores = np.zeros((n, len(batches)))
+        counts = np.zeros((n, len(batches)), dtype=np.int64)
+        for k, frame in enumerate(batches):
+            for c, batch in enumerate(frame):
+                seen = batch.counts * per_point
+                scores[:, k] += np.where(seen >= self.min_counts[k][c], batch.scores, 0.0) / len(frame)
+                counts[:, k] = np.maximum(counts[:, k], seen)
+        return scores, counts
+
+    def evaluate(self, x: NDArray[np.floating]) -> NDArray[np.float64]:
+        """Mean score over frames for parameters (P, D) -> (P,)."""
+        return np.asarray(self.frame_scores(x)[0].mean(axis=1))
+
+    def evaluate_explore(self, x: NDArray[np.floating]) -> NDArray[np.float64]:
+        """``evaluate`` against the blurred image gradients of the exploration phase."""
+        return np.asarray(self.frame_scores(x, explore=True)[0].mean(axis=1))
+
+    def optimise(self, seed: int) -> tuple[SwarmResult, SwarmResult | None]:
+        cfg = self.config
+        centre = 0.5 * (self.lower + self.upper)
+        swarm = particle_swarm(self.evaluate, self.lower, self.upper, n_particles=cfg.n_particles,
+                               max_iterations=cfg.max_iterations, stall_iterations=cfg.stall_iterations,
+                               min_iterations=cfg.min_iterations, score_tolerance=cfg.swarm_tolerance,
+                               seed=seed, x_initial=centre,
+                               explore_objective=self.evaluate_explore if self.explore_scorers else None,
+                               explore_iterations=cfg.explore_phase_iterations)
+        if not cfg.polish:
+            return swarm, None
+        step = 0.1 * (self.upper - self.lower)
+        polish = pattern_search(self.evaluate, swarm.best_x, step, self.lower, self.upper,
+                                min_step_fraction=0.005, score_at_x0=swarm.best_score)
+        return swarm, polish
