@@ -7,11 +7,13 @@ defaults (``fleetcal calibrate``: range+normals, 3 seeded repeats), and (3) with
 ``--seeds N`` the KITTI robustness study: starts 5 deg / 0.5 m off on random axes, search 10 deg / 1 m
 (the auto gradient viewpoint then takes the lidar's own sphere and the swarm explores first), and
 (4) with ``--rings N`` the sparse-ring study: a simulated VLP-16 (16 rings 2 deg apart, 1800 columns,
-street, 10 frames) from N starts 2 deg / 10 cm off, ring smoothing auto vs off.
+street, 10 frames) from N starts 2 deg / 10 cm off, ring smoothing auto vs off, and (5) with ``--sweep``
+the motion-distortion study: a simulated street whose scans are not de-skewed, per-point times vs
+scan stamps at several speeds.
 
     .venv/bin/python benchmarks/bench_gom.py [--seeds 10] [--logs kitti pjlab nuscenes] [--skip-table]
         [--sim [sim-street sim-open-normals ...]]   (simulated logs with exact truth; alone: all)
-        [--rings 5]
+        [--rings 5] [--sweep [5 10 15]]
 """
 
 from __future__ import annotations
@@ -156,6 +158,31 @@ def rings_study(n: int) -> None:
     print(f"  rotation within 0.5 deg: auto {within['auto']} of {n}, off {within['off']} of {n}")
 
 
+def sweep_study(speeds: list[float]) -> None:
+    """Simulated motion-distorted street (columns fired over 0.1 s, 640x360 x 512 columns, intensity) at
+    each speed, from 5 deg / 0.5 m in a 10 deg / 1 m box, 3 seeded repeats (the workflow's): points moved
+    by their own time field vs each scan by its stamp (``calibration.point_times``)."""
+    import tempfile
+
+    from pipeline.transforms import rotation_error_deg, translation_error_m
+    from stages.calibration import CalibrationConfig
+    from tests.test_calibration_sim import simulated_frames
+
+    print("\nmotion during the sweep (simulated street, not de-skewed), from 5 deg / 0.5 m, box 10 deg / 1 m")
+    print(f"{'speed_m_s':>9s} {'motion':12s} {'rot_deg':>8s} {'trans_m':>8s} {'runtime_s':>9s} verdict")
+    with tempfile.TemporaryDirectory() as tmp:
+        for speed in speeds:
+            for point_times in (True, False):
+                frames, T_init, T_true = simulated_frames(Path(tmp), "street", "intensity", 10,
+                                                          skewed_at_m_s=speed, point_times=point_times)
+                result = calibrate(frames, T_init, CalibrationConfig(search_deg=10.0, search_m=1.0, repeats=3))
+                rot = rotation_error_deg(result.T_camera_lidar, T_true)
+                trans = translation_error_m(result.T_camera_lidar, T_true)
+                label = "point times" if point_times else "scan stamp"
+                print(f"{speed:9.1f} {label:12s} {rot:8.3f} {trans:8.3f} {result.runtime_s:9.1f} {result.verdict}",
+                      flush=True)
+
+
 def seeds_study(n: int) -> None:
     log = "kitti_2011_09_26.mcap"
     if not (LOGS / log).exists():
@@ -183,6 +210,8 @@ def main() -> None:
     parser.add_argument("--metrics", nargs="*", default=["gom", "nmi", "levinson"])
     parser.add_argument("--seeds", type=int, default=0, help="KITTI offset study with this many seeds")
     parser.add_argument("--rings", type=int, default=0, help="simulated VLP-16 study with this many starts")
+    parser.add_argument("--sweep", nargs="*", type=float, default=None, metavar="M_S",
+                        help="motion-distortion study at these speeds (alone: 5 10 15)")
     parser.add_argument("--skip-table", action="store_true")
     parser.add_argument("--sim", nargs="*", default=None, choices=list(SIM_CASES),
                         help="simulated cases to add (give the flag alone for all)")
@@ -196,6 +225,8 @@ def main() -> None:
         seeds_study(args.seeds)
     if args.rings:
         rings_study(args.rings)
+    if args.sweep is not None:
+        sweep_study(args.sweep or [5.0, 10.0, 15.0])
 
 
 if __name__ == "__main__":

@@ -137,6 +137,10 @@ class CalibrationConfig:
         estimate_focal: also estimate a common scale of fx and fy.
         min_points: scans with fewer points are skipped.
         motion_compensation: move lidar points to the camera stamp with the log's /tf odometry.
+        point_times: with ``motion_compensation``, a scan with a per-point time field (all within 0.5 s of
+            its stamp) moves each point from its own capture time, with the lidar's velocity over the
+            sweep from /tf; false: the whole scan from its stamp (for clouds the driver de-skewed but
+            that still carry their firing times).
         occlusion_filter: drop lidar points hidden from the camera at the initial guess (z-buffer).
         gradient_viewpoint: where lidar gradients are taken: ``camera`` (paper: sphere at the camera at
             the initial guess), ``lidar`` (the lidar's own sphere, edge directions carried into the
@@ -172,6 +176,7 @@ class CalibrationConfig:
     estimate_focal: bool = False
     min_points: int = 100
     motion_compensation: bool = True
+    point_times: bool = True
     occlusion_filter: bool = False
     gradient_viewpoint: Literal["auto", "camera", "lidar"] = "auto"
     gradient_fit: Literal["auto", "paper", "lsq"] = "auto"

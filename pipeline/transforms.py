@@ -78,6 +78,42 @@ def exp_se3(xi: NDArray[np.float64]) -> Mat4:
     return make_T(Rotation.from_rotvec(xi[:3]).as_matrix(), xi[3:6])
 
 
+def _screw_terms(theta: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``(1 - cos t) / t^2`` and ``(t - sin t) / t^3`` of angles t (rad), by their series near 0."""
+    small = theta < 1e-4
+    t = np.where(small, 1.0, theta)
+    a = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(t)) / t**2)
+    b = np.where(small, 1.0 / 6.0 - theta**2 / 120.0, (t - np.sin(t)) / t**3)
+    return a, b
+
+
+def screw_apply(twist: NDArray[np.floating], dt_s: NDArray[np.floating],
+                points_xyz: NDArray[np.floating]) -> NDArray[np.float64]:
+    """``exp(twist * dt_i) @ p_i`` for each point: the SE(3) exponential of a constant body twist
+    (vx, vy, vz m/s, wx, wy, wz rad/s) over its own duration dt_i (s), applied to points (N, 3), metres."""
+    tw = np.asarray(twist, dtype=np.float64).ravel()
+    dt = np.asarray(dt_s, dtype=np.float64).ravel()
+    v, w = tw[:3], tw[3:]
+    pts = Rotation.from_rotvec(w[None, :] * dt[:, None]).apply(np.asarray(points_xyz, dtype=np.float64))
+    a, b = _screw_terms(np.linalg.norm(w) * np.abs(dt))
+    wv = np.cross(w, v)
+    wwv = np.cross(w, wv)
+    shift = v[None, :] * dt[:, None] + (a * dt**2)[:, None] * wv[None, :] + (b * dt**3)[:, None] * wwv[None, :]
+    return np.asarray(pts + shift)
+
+
+def twist_of(T_start_end: Mat4, duration_s: float) -> NDArray[np.float64]:
+    """The constant body twist (vx, vy, vz m/s, wx, wy, wz rad/s) whose motion over ``duration_s``
+    is ``T_start_end`` (SE(3) logarithm / duration; inverse of ``screw_apply``)."""
+    T = np.asarray(T_start_end, dtype=np.float64)
+    phi = Rotation.from_matrix(T[:3, :3]).as_rotvec()
+    a, b = _screw_terms(np.array([np.linalg.norm(phi)]))
+    K = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
+    V = np.eye(3) + a[0] * K + b[0] * (K @ K)
+    rho = np.linalg.solve(V, T[:3, 3])
+    return np.concatenate([rho, phi]) / duration_s
+
+
 def rotation_error_deg(T_a: Mat4, T_b: Mat4) -> float:
     """Angle (degrees) of the relative rotation between two transforms."""
     R = T_a[:3, :3].T @ T_b[:3, :3]

@@ -199,3 +199,15 @@ def test_ring_smoothing_reaches_the_solver_and_rejects_other_values() -> None:
         load_config(env={"FLEETCAL_CALIBRATION__RING_SMOOTHING": "maybe"})
     with pytest.raises(ConfigError, match="ring_smoothing"):
         replace(solver_config(Config()), ring_smoothing_fraction=0.0).validate()
+
+
+def test_no_point_times_flag_reaches_the_config() -> None:
+    from workflows.cli import build_parser
+    from workflows.cmd_calibrate import overrides
+
+    parser = build_parser()
+    on = overrides(parser.parse_args(["calibrate", "x.mcap", "--out", "o"]))
+    off = overrides(parser.parse_args(["calibrate", "x.mcap", "--out", "o", "--no-point-times"]))
+    assert Config().calibration.point_times is True
+    assert load_config(env={}, overrides=on).calibration.point_times is True
+    assert load_config(env={}, overrides=off).calibration.point_times is False

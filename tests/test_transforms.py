@@ -16,9 +16,11 @@ from pipeline.transforms import (
     invert,
     is_rigid,
     rotation_error_deg,
+    screw_apply,
     to_quat,
     to_rpy_deg,
     translation_error_m,
+    twist_of,
 )
 
 
@@ -123,3 +125,19 @@ def test_tree_missing_path_and_bad_edges() -> None:
     with pytest.raises(TransformError, match="not a rigid"):
         tree.add("a", "x", bad, 0, static=True)
     assert {(p, c) for p, c, _ in tree.edges()} == {("a", "b"), ("c", "d")}
+
+
+def test_twist_of_and_screw_apply_round_trip() -> None:
+    """The constant twist of a motion, applied over the same duration, is that motion; over half of it,
+    twice gives the motion again; its first order is ``p + (v + w x p) dt``."""
+    rng = np.random.default_rng(4)
+    T = exp_se3(np.concatenate([rng.normal(size=3) * 0.4, rng.normal(size=3) * 2.0]))
+    points = rng.normal(size=(50, 3)) * 20
+    twist = twist_of(T, 0.1)
+    np.testing.assert_allclose(screw_apply(twist, np.full(50, 0.1), points), apply(T, points), atol=1e-9)
+    half = screw_apply(twist, np.full(50, 0.05), points)
+    np.testing.assert_allclose(screw_apply(twist, np.full(50, 0.05), half), apply(T, points), atol=1e-9)
+    dt = np.full(50, 1e-6)
+    first_order = points + (twist[:3] + np.cross(twist[3:], points)) * 1e-6
+    np.testing.assert_allclose(screw_apply(twist, dt, points), first_order, atol=1e-9)
+    np.testing.assert_allclose(screw_apply(twist, np.zeros(50), points), points, atol=1e-12)

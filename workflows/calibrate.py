@@ -31,6 +31,7 @@ from pipeline.transforms import (
     to_quat,
     to_rpy_deg,
     translation_error_m,
+    twist_of,
 )
 from readers.base import LogReader
 from readers.frames import load_tf_tree
@@ -143,6 +144,45 @@ def _motion(tree: TransformTree | None, lidar_frame: str, scan_ns: int, camera_n
     return invert(T_world_cam) @ T_world_scan
 
 
+MAX_SWEEP_S = 0.5
+"""Per-point times further than this from the scan stamp are not a sweep's firing times (s)."""
+
+
+def _sweep_motion(
+    tree: TransformTree | None, lidar_frame: str, lidar: LidarFrame, camera_ns: int
+) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+    """Per-point capture time minus the camera stamp (N,), s, and the lidar's twist over the sweep (6,):
+    velocity (m/s) and angular rate (rad/s) in the lidar frame, from the tf tree's odometry between the
+    scan's first and last point times. None for scans without a per-point time field, with one capture
+    time, with times that do not fit the stamp (more than ``MAX_SWEEP_S`` from it), or without odometry."""
+    times = lidar.channel("time")
+    if tree is None or times is None or lidar.n_points == 0:
+        return None
+    t = np.asarray(times, dtype=np.float64).ravel()
+    finite = np.isfinite(t)
+    if t.shape[0] != lidar.n_points or not finite.any():
+        return None
+    t_first, t_last = float(t[finite].min()), float(t[finite].max())
+    if t_last - t_first < 1e-3:
+        return None
+    if max(abs(t_first), abs(t_last)) > MAX_SWEEP_S:
+        log.warning("scan at %d: per-point times %.3f..%.3f s from its stamp are not a sweep; the scan moves "
+                    "by its stamp", lidar.stamp_ns, t_first, t_last)
+        return None
+    world = root_of(tree, lidar_frame)
+    if world == lidar_frame or tree.is_static_path(world, lidar_frame):
+        return None
+    try:
+        T_world_first = tree.lookup(world, lidar_frame, lidar.stamp_ns + round(t_first * 1e9))
+        T_world_last = tree.lookup(world, lidar_frame, lidar.stamp_ns + round(t_last * 1e9))
+    except TransformError as err:
+        log.warning("scan at %d: no odometry over its sweep (%s); the scan moves by its stamp", lidar.stamp_ns, err)
+        return None
+    twist = twist_of(invert(T_world_first) @ T_world_last, t_last - t_first)
+    offsets_s = np.where(finite, t, 0.5 * (t_first + t_last)) + (lidar.stamp_ns - camera_ns) * 1e-9
+    return offsets_s, twist
+
+
 def make_frame(
     lidar: LidarFrame,
     camera: CameraFrame,
@@ -191,11 +231,19 @@ def collect_frames(
             log.warning("skipping scan at %d: %d points", lidar.stamp_ns, lidar.n_points)
             sparse += 1
             continue
-        motion = (
-            _motion(tree, out.lidar_frame, lidar.stamp_ns, camera.stamp_ns) if c.motion_compensation else None
+        sweep = (
+            _sweep_motion(tree, out.lidar_frame, lidar, camera.stamp_ns)
+            if c.motion_compensation and c.point_times else None
         )
-        out.compensated |= motion is not None
-        out.frames.append(make_frame(lidar, camera, c.feature, c.blur_sigma_px, motion))
+        motion = (
+            _motion(tree, out.lidar_frame, lidar.stamp_ns, camera.stamp_ns)
+            if c.motion_compensation and sweep is None else None
+        )
+        out.compensated |= motion is not None or sweep is not None
+        frame = make_frame(lidar, camera, c.feature, c.blur_sigma_px, motion)
+        if sweep is not None:
+            frame = replace(frame, point_time_offsets_s=sweep[0], twist_lidar=sweep[1])
+        out.frames.append(frame)
         out.images.append(camera.image)
         out.lidar_stamps.append(lidar.stamp_ns)
         out.n_points.append(lidar.n_points)
@@ -374,7 +422,7 @@ def write_calibration(pairs: list[PairCalibration], config: Config, out_dir: Pat
         name = p.camera_topic.strip("/").replace("/", "_")
         f, image = p.frames[0], p.images[0]
         for label, T in (("before", p.T_camera_lidar_initial), ("after", p.T_camera_lidar)):
-            points = f.points_xyz if f.T_lidar_motion is None else apply(f.T_lidar_motion, f.points_xyz)
+            points = f.points_at_camera_stamp()
             written.append(report.write_overlay(image, f.camera, apply(T, points),
                                                 report_dir / f"overlay_{label}_{name}.png"))  # fmt: skip
     return written

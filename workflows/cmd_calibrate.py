@@ -54,6 +54,8 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
                    help="GOM also scores image gradients smoothed across the lidar's rings (a third of their "
                         "spacing); auto (default): on where that exceeds the image blur (sparse rings)")
     p.add_argument("--no-motion-compensation", action="store_true", help="ignore /tf odometry")
+    p.add_argument("--no-point-times", action="store_true",
+                   help="move each scan by its stamp, not each point by its time field (de-skewed clouds)")
     p.add_argument("--estimate-focal", action="store_true", help="also estimate a focal length scale")
     p.add_argument("--particles", type=int, metavar="N", help="particle swarm size (default 200)")
     p.add_argument("--seed", type=int, help="random seed")
@@ -84,6 +86,7 @@ def overrides(args: argparse.Namespace) -> dict[str, Any]:
         "calibration.gradient_neighbours": args.gradient_neighbours,
         "calibration.estimate_focal": True if args.estimate_focal else None,
         "calibration.motion_compensation": False if args.no_motion_compensation else None,
+        "calibration.point_times": False if args.no_point_times else None,
         "io.allow_truncated": True if args.allow_truncated else None,
     }
 

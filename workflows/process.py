@@ -218,7 +218,7 @@ def process_log(
         for p in pairs:
             if p.frames:
                 f = p.frames[0]
-                pts = f.points_xyz if f.T_lidar_motion is None else apply(f.T_lidar_motion, f.points_xyz)
+                pts = f.points_at_camera_stamp()
                 overlays[p.camera_topic] = [(f.stamp_ns, jpeg_overlay(p.images[0], f.camera,
                                                                       apply(p.T_camera_lidar, pts)))]  # fmt: skip
         target = writeback_path(paths[0], out_dir)

@@ -8,12 +8,13 @@ from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from pipeline.camera_model import CameraModel
 from pipeline.config import feature_names
 from pipeline.errors import ProcessingError
 from pipeline.frames import CameraFrame, LidarFrame
-from pipeline.transforms import apply
+from pipeline.transforms import apply, screw_apply
 
 Mat4 = NDArray[np.float64]
 
@@ -43,7 +44,8 @@ class CalibrationFrame:
         T_lidar_motion: 4x4 ``T_lidar(camera stamp)_lidar(scan stamp)``: ego-motion from the scan
             stamp to the camera stamp, applied to the points once (None: no motion).
         point_time_offsets_s: (N,) optional per-point capture time minus the camera stamp, seconds,
-            used with ``twist_lidar`` for motion during the sweep.
+            used with ``twist_lidar`` for motion during the sweep (each point then moves by its own
+            offset; ``T_lidar_motion`` is then normally None).
         twist_lidar: (6,) optional lidar velocity (vx, vy, vz m/s, wx, wy, wz rad/s) in the lidar frame.
         stamp_ns: camera stamp (for reports).
         label: free text (e.g. the camera topic).
@@ -62,21 +64,37 @@ class CalibrationFrame:
     stamp_ns: int = 0
     label: str = ""
 
+    def points_at_camera_stamp(self) -> NDArray[np.float64]:
+        """(N, 3) points moved to the camera stamp (``compensate_ego_motion``), lidar frame, metres."""
+        return compensate_ego_motion(self.points_xyz, self.T_lidar_motion, self.point_time_offsets_s,
+                                     self.twist_lidar)
+
+    def motion_rotation(self) -> NDArray[np.float64] | None:
+        """3x3 rotation of the lidar frame from capture to the camera stamp (a sweep's at its median point
+        time: ``exp(w dt)``, as ``compensate_ego_motion`` turns points), None without motion."""
+        R: NDArray[np.float64] | None = None
+        if self.point_time_offsets_s is not None and self.twist_lidar is not None:
+            dt = float(np.median(np.asarray(self.point_time_offsets_s, dtype=np.float64)))
+            R = Rotation.from_rotvec(np.asarray(self.twist_lidar, dtype=np.float64)[3:] * dt).as_matrix()
+        if self.T_lidar_motion is not None:
+            R_scan = np.asarray(self.T_lidar_motion, dtype=np.float64)[:3, :3]
+            R = R_scan if R is None else R_scan @ R
+        return R
+
 
 def compensate_ego_motion(points_xyz: NDArray[np.floating], T_lidar_motion: Mat4 | None = None,
                           point_time_offsets_s: NDArray[np.floating] | None = None,
                           twist_lidar: NDArray[np.floating] | None = None) -> NDArray[np.float64]:
-    """Move scan points to the camera stamp: first per point by a constant lidar twist over its time
-    offset ``dt = t_point - t_camera`` (first order: ``p + (v + w x p) dt``, i.e. the point expressed
-    in the lidar frame at the camera stamp), then by ``T_lidar_motion``."""
+    """Move scan points to the camera stamp: first each point by the constant lidar twist over its time
+    offset ``dt = t_point - t_camera`` (the screw motion ``exp(twist dt)``, which expresses a point in the
+    lidar frame at the camera stamp; first order ``p + (v + w x p) dt``), then by ``T_lidar_motion``."""
     pts = np.asarray(points_xyz, dtype=np.float64)
     if point_time_offsets_s is not None and twist_lidar is not None:
         tw = np.asarray(twist_lidar, dtype=np.float64).ravel()
         dt = np.asarray(point_time_offsets_s, dtype=np.float64).ravel()
         if tw.shape != (6,) or dt.shape[0] != pts.shape[0]:
             raise ProcessingError("twist_lidar must be (6,) and point time offsets one per point")
-        vel = tw[:3][None, :] + np.cross(tw[3:][None, :], pts)
-        pts = pts + vel * dt[:, None]
+        pts = screw_apply(tw, dt, pts)
     if T_lidar_motion is not None:
         pts = apply(np.asarray(T_lidar_motion, dtype=np.float64), pts)
     return pts

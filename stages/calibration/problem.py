@@ -228,7 +228,7 @@ class CalibrationProblem:
         cfg = self.config
         if cfg.viewpoint == "lidar":
             grads = lidar_view_gradients(raw, pts, feat, T_cam_lidar,
-                                         None if f.T_lidar_motion is None else f.T_lidar_motion[:3, :3],
+                                         f.motion_rotation(),
                                          k=cfg.sphere_k, fit=cfg.fit, neighbours_by=cfg.neighbours_on("lidar"),
                                          neighbours=neighbours)
         else:

@@ -100,7 +100,9 @@ class LidarScan:
             firing time when the scan is not de-skewed), m; NaN for no return.
         intensity: (beams, columns) float32, 0..255.
         ring: (beams, columns) uint16.
-        time_s: (beams, columns) float32, firing time after the scan stamp, s.
+        time_s: (beams, columns) float32, firing time after the scan stamp, s; 0 in a de-skewed scan,
+            whose every point is where it was at the stamp (a nonzero time would tell a reader to
+            move the point from that time).
         valid: (beams, columns) bool.
         reflectivity: (beams, columns) float64 surface reflectivity at the hit (truth, for tests).
     """
@@ -134,7 +136,8 @@ def simulate_scan(
     as a moving real sensor reports them)."""
     B, C = model.beams, model.columns
     T = np.asarray(T_world_lidar, dtype=np.float64)
-    if T.shape == (4, 4):
+    deskewed = T.shape == (4, 4)
+    if deskewed:
         T = np.broadcast_to(T, (C, 4, 4))
     if T.shape != (C, 4, 4):
         raise ConfigError(f"T_world_lidar must be (4, 4) or ({C}, 4, 4), got {T.shape}")
@@ -164,7 +167,8 @@ def simulate_scan(
     intensity = np.clip(255.0 * signal * gains + 1.5 * noise_i, 0.0, 255.0)
     points = np.where(valid[..., None], dirs_l * rng_m[..., None], np.nan).astype(np.float32)
     ring = np.broadcast_to(np.arange(B, dtype=np.uint16)[:, None], (B, C)).copy()
-    time_s = np.broadcast_to(model.column_times_s().astype(np.float32)[None, :], (B, C)).copy()
+    column_times = np.zeros(C, dtype=np.float32) if deskewed else model.column_times_s().astype(np.float32)
+    time_s = np.broadcast_to(column_times[None, :], (B, C)).copy()
     return LidarScan(
         points_xyz=points,
         intensity=np.where(valid, intensity, np.nan).astype(np.float32),
