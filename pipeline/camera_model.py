@@ -182,3 +182,11 @@ class CameraModel:
             xn = xn - (xx - xd)
             yn = yn - (yy - yd)
         return np.stack([xn, yn, np.ones_like(xn)], axis=1)
+
+
+def with_model(camera: CameraModel | None, model: str) -> CameraModel | None:
+    """``camera`` (as its CameraInfo describes it) with its projection replaced by ``model`` (same size, K
+    and D); ``log`` or a missing camera: unchanged (``calibration.camera_model``)."""
+    if camera is None or model == "log" or model == camera.distortion_model:
+        return camera
+    return CameraModel(camera.width, camera.height, camera.K, camera.D, model)

@@ -154,6 +154,10 @@ class CalibrationConfig:
         explore: GOM swarm's first 30 iterations against image gradients blurred 3x more (wider basins):
             ``on``, ``off`` or ``auto`` (default: on for boxes wider than 5 deg or 0.5 m); evidence in
             ``stages.calibration.config.CalibrationConfig``.
+        camera_model: projection of the images: ``log`` (default: the CameraInfo's distortion model) or
+            one that replaces it with the same K and D: ``plumb_bob``, ``rational_polynomial``,
+            ``equidistant`` (fisheye), ``cylindrical`` (the GOM paper's panoramic model, eq. 6: u =
+            fx * azimuth + cx, v = fy * y / sqrt(x^2 + z^2) + cy) or ``none`` (pinhole, D ignored).
         ring_smoothing: GOM also scores each frame against its image gradients smoothed across the
             lidar's rings by a third of their spacing (against aliasing by a sparse lidar's rings): ``on``,
             ``off`` or ``auto`` (default: on where that is more than the image blur, e.g. 32 or 16 beams);
@@ -183,6 +187,7 @@ class CalibrationConfig:
     gradient_neighbours: Literal["auto", "angle", "sampling"] = "auto"
     explore: Literal["auto", "on", "off"] = "auto"
     ring_smoothing: Literal["auto", "on", "off"] = "auto"
+    camera_model: Literal["log", "plumb_bob", "rational_polynomial", "equidistant", "cylindrical", "none"] = "log"
 
     def validate(self) -> None:
         feature_names(self.feature)

@@ -202,3 +202,29 @@ def test_calibrate_nuscenes_joint_with_ego_motion(
                                    "--out", str(tmp_path / "b")])  # fmt: skip
     assert worst(compensated) <= 0.6
     assert worst(raw) > worst(compensated)
+
+
+@pytest.mark.parametrize("model", ["log", "cylindrical", "equidistant", "none"])
+def test_camera_model_flag_replaces_the_camera_infos_projection(sim_log: Path, model: str) -> None:
+    """``--camera-model`` keeps the CameraInfo's size, K and D and replaces its projection (``log``: as
+    logged, plumb_bob in the simulator); a cylindrical panorama projects by azimuth."""
+    from pipeline.config import Config
+    from readers.frames import load_tf_tree
+    from workflows.calibrate import collect_frames
+    from workflows.cmd_calibrate import overrides
+    from workflows.cli import build_parser
+
+    args = build_parser().parse_args(["calibrate", str(sim_log), "--out", "o", "--camera-model", model])
+    assert overrides(args)["calibration.camera_model"] == model
+    config = Config()
+    config.calibration.frames = 1
+    config.calibration.camera_model = model  # type: ignore[assignment]
+    with open_log(sim_log) as reader:
+        col = collect_frames(reader, "/lidar/points", "/camera_0/image_raw", config, load_tf_tree(reader))
+    camera = col.frames[0].camera
+    assert camera.distortion_model == ("plumb_bob" if model == "log" else model)
+    assert (camera.width, camera.height) == (640, 360)
+    if model == "cylindrical":
+        az = np.radians(30.0)
+        uv, ok = camera.project(np.array([[10 * np.sin(az), 0.0, 10 * np.cos(az)]]))
+        assert ok[0] and uv[0, 0] == pytest.approx(camera.fx * az + camera.cx)

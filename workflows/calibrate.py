@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from pipeline.camera_model import with_model
 from pipeline.config import Config
 from pipeline.errors import InputError, ProcessingError, TransformError, UsageError
 from pipeline.frames import CameraFrame, LidarFrame
@@ -240,6 +241,7 @@ def collect_frames(
             if c.motion_compensation and sweep is None else None
         )
         out.compensated |= motion is not None or sweep is not None
+        camera.camera = with_model(camera.camera, c.camera_model)
         frame = make_frame(lidar, camera, c.feature, c.blur_sigma_px, motion)
         if sweep is not None:
             frame = replace(frame, point_time_offsets_s=sweep[0], twist_lidar=sweep[1])

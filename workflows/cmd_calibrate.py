@@ -56,6 +56,10 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--no-motion-compensation", action="store_true", help="ignore /tf odometry")
     p.add_argument("--no-point-times", action="store_true",
                    help="move each scan by its stamp, not each point by its time field (de-skewed clouds)")
+    p.add_argument("--camera-model", choices=["log", "plumb_bob", "rational_polynomial", "equidistant",
+                                              "cylindrical", "none"],
+                   help="image projection: the CameraInfo's (log, default) or this model with its K and D "
+                        "(cylindrical: the GOM paper's panoramic model)")
     p.add_argument("--estimate-focal", action="store_true", help="also estimate a focal length scale")
     p.add_argument("--particles", type=int, metavar="N", help="particle swarm size (default 200)")
     p.add_argument("--seed", type=int, help="random seed")
@@ -82,6 +86,7 @@ def overrides(args: argparse.Namespace) -> dict[str, Any]:
         "calibration.gradient_viewpoint": args.gradient_viewpoint,
         "calibration.explore": args.explore,
         "calibration.ring_smoothing": args.ring_smoothing,
+        "calibration.camera_model": args.camera_model,
         "calibration.gradient_fit": args.gradient_fit,
         "calibration.gradient_neighbours": args.gradient_neighbours,
         "calibration.estimate_focal": True if args.estimate_focal else None,

@@ -17,6 +17,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from pipeline.camera_model import with_model
 from pipeline.config import Config, write_toml
 from pipeline.engine import Engine
 from pipeline.frames import LidarFrame
@@ -89,6 +90,7 @@ class ColorSource:
     cameras: tuple[tuple[str, tuple[tuple[float, ...], ...]], ...]
     tolerance_ns: int
     allow_truncated: bool = False
+    camera_model: str = "log"
 
 
 @functools.lru_cache(maxsize=4)
@@ -124,8 +126,9 @@ def colorize_scan(frame: LidarFrame, source: ColorSource) -> LidarFrame:
     views = []
     for topic, T_rows in source.cameras:
         image = _nearest_image(reader, topic, frame.stamp_ns, source.tolerance_ns)
-        if image is not None and image.camera is not None:
-            views.append((image.image, image.camera, np.array(T_rows)))
+        camera = None if image is None else with_model(image.camera, source.camera_model)
+        if image is not None and camera is not None:
+            views.append((image.image, camera, np.array(T_rows)))
     points = np.asarray(frame.points_xyz, dtype=np.float64)
     if views:
         rgb, seen = colorize(points, views)
@@ -188,7 +191,7 @@ def process_log(
         t0 = time.perf_counter()
         source = ColorSource(
             tuple(paths), tuple((p.camera_topic, tuple(map(tuple, p.T_camera_lidar.tolist()))) for p in pairs),
-            config.io.pairing_tolerance_ns, config.io.allow_truncated,
+            config.io.pairing_tolerance_ns, config.io.allow_truncated, config.calibration.camera_model,
         )  # fmt: skip
         first = next(iter(reader.messages(topics=[lidar_topic])), None)
         has_intensity = first is not None and any(
