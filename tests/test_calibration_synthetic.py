@@ -257,9 +257,9 @@ def test_ego_motion_compensation_moves_points_to_camera_time() -> None:
     twist = np.array([9.0, 0.0, 0.0, 0.0, 0.0, 0.0])
     moved = compensate_ego_motion(points, None, np.array([0.02, 0.0]), twist)
     np.testing.assert_allclose(moved, [[10.18, 0.0, 0.0], [0.0, 5.0, 1.0]])
-    spin = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.5])  # yaw rate 0.5 rad/s (left), 10 ms
+    spin = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.5])  # yaw rate 0.5 rad/s (left), 10 ms: turned 0.005 rad
     turned = compensate_ego_motion(points[:1], None, np.array([0.01]), spin)
-    np.testing.assert_allclose(turned, [[10.0, 0.05, 0.0]], atol=1e-12)
+    np.testing.assert_allclose(turned, [[10.0 * np.cos(0.005), 10.0 * np.sin(0.005), 0.0]], atol=1e-12)
 
 
 def test_no_frames_is_a_clear_error() -> None:
