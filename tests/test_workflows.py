@@ -211,8 +211,8 @@ def test_camera_model_flag_replaces_the_camera_infos_projection(sim_log: Path, m
     from pipeline.config import Config
     from readers.frames import load_tf_tree
     from workflows.calibrate import collect_frames
-    from workflows.cmd_calibrate import overrides
     from workflows.cli import build_parser
+    from workflows.cmd_calibrate import overrides
 
     args = build_parser().parse_args(["calibrate", str(sim_log), "--out", "o", "--camera-model", model])
     assert overrides(args)["calibration.camera_model"] == model
