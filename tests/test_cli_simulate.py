@@ -252,6 +252,7 @@ def test_truth_schema_matches_shared_data(shared_data: Path, tmp_path: Path) -> 
         (["--speed", "-1"], "--speed"),
         (["--image-size", "big"], "--image-size"),
         (["--max-range", "0"], "--max-range"),
+        (["--fisheye", "--panorama"], "--panorama"),
     ],
 )
 def test_cli_nonsense_arguments_get_one_line_error(

@@ -107,7 +107,10 @@ def add_simulation_arguments(parser: argparse.ArgumentParser, frames: int, size:
         metavar="M",
         help="lidar max range in m (default 100; 20 keeps the corridor's ends out of sight)",
     )
-    parser.add_argument("--fisheye", action="store_true", help="equidistant fisheye cameras instead of pinhole")
+    lens = parser.add_mutually_exclusive_group()
+    lens.add_argument("--fisheye", action="store_true", help="equidistant fisheye cameras instead of pinhole")
+    lens.add_argument("--panorama", action="store_true",
+                        help="cylindrical 360 deg panoramas (the GOM paper's Ladybug model) instead of pinhole")
     parser.add_argument(
         "--compressed",
         action="store_true",
@@ -159,6 +162,7 @@ def options_from_args(args: argparse.Namespace) -> SimulationOptions:
         columns=args.columns,
         cameras=args.cameras,
         fisheye=args.fisheye,
+        panorama=args.panorama,
         compressed=args.compressed,
         organized=args.organized,
         speed_m_s=args.speed,

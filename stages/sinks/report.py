@@ -36,10 +36,11 @@ def _to_bgr(image: NDArray[Any]) -> NDArray[np.uint8]:
 def overlay_image(
     image: NDArray[Any], camera: CameraModel, points_cam: NDArray[np.floating], max_points: int = 60_000
 ) -> NDArray[np.uint8]:
-    """BGR image with optical-frame points drawn, coloured by depth (near red, far blue)."""
+    """BGR image with optical-frame points drawn, coloured by their distance from the camera (near red, far
+    blue; the distance, not z, so that a panorama's points behind the optical axis are coloured too)."""
     canvas = _to_bgr(image)
     uv, valid = camera.project(points_cam)
-    uv, depth = uv[valid], np.asarray(points_cam)[valid, 2]
+    uv, depth = uv[valid], np.linalg.norm(np.asarray(points_cam)[valid], axis=1)
     if uv.shape[0] > max_points:
         pick = np.random.default_rng(0).choice(uv.shape[0], max_points, replace=False)
         uv, depth = uv[pick], depth[pick]

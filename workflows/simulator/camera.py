@@ -39,6 +39,13 @@ def fisheye_camera(width: int, height: int) -> CameraModel:
     return CameraModel(width, height, K, np.array([0.02, -0.004, 0.0008, 0.0]), "equidistant")
 
 
+def panorama_camera(width: int, height: int) -> CameraModel:
+    """Cylindrical panorama (the GOM paper's eq. 6, a Ladybug-style stitched image): 360 deg of azimuth
+    across the width, +-45 deg of elevation (tan 1) over the height."""
+    K = np.array([[width / (2 * np.pi), 0.0, width / 2 - 0.5], [0.0, height / 2, height / 2 - 0.5], [0.0, 0.0, 1.0]])
+    return CameraModel(width, height, K, np.zeros(0), "cylindrical")
+
+
 @dataclass
 class SimCamera:
     """One simulated camera.

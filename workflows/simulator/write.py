@@ -25,7 +25,7 @@ from pipeline.progress import Progress
 from pipeline.transforms import invert
 from stages.sinks import ros_messages as rm
 from stages.sinks.log_writer import LogWriter
-from workflows.simulator.camera import SimCamera, fisheye_camera, pinhole_camera, render
+from workflows.simulator.camera import SimCamera, fisheye_camera, panorama_camera, pinhole_camera, render
 from workflows.simulator.lidar import SUPPORTED_BEAMS, LidarModel, LidarScan, simulate_scan
 from workflows.simulator.motion import LoopMotion
 from workflows.simulator.raycast import build_grid
@@ -70,6 +70,7 @@ class SimulationOptions:
     columns: int = 1024
     cameras: int = 1
     fisheye: bool = False
+    panorama: bool = False
     compressed: bool = False
     organized: bool = False
     speed_m_s: float | None = None
@@ -86,6 +87,7 @@ class SimulationOptions:
     def validate(self) -> None:
         """Raise ConfigError with a one-line message for any nonsense value."""
         checks = [
+            (not (self.fisheye and self.panorama), "choose one of fisheye and panorama cameras"),
             (
                 self.fmt in ("mcap", "ros1", "ros2"),
                 f"unknown format {self.fmt!r} (choose from mcap, ros1, ros2)",
@@ -187,7 +189,7 @@ def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet:
         max_range_m=opts.max_range_m,
         seed=opts.seed,
     )
-    make_model = fisheye_camera if opts.fisheye else pinhole_camera
+    make_model = fisheye_camera if opts.fisheye else panorama_camera if opts.panorama else pinhole_camera
     cameras = [
         SimCamera(make_model(opts.width, opts.height), spectral_mix=min(0.15 * i, 0.6)) for i in range(opts.cameras)
     ]
