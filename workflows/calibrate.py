@@ -170,16 +170,12 @@ def _sweep_motion(
         log.warning("scan at %d: per-point times %.3f..%.3f s from its stamp are not a sweep; the scan moves "
                     "by its stamp", lidar.stamp_ns, t_first, t_last)
         return None
-    world = root_of(tree, lidar_frame)
-    if world == lidar_frame or tree.is_static_path(world, lidar_frame):
+    # the sweep's motion T_lidar(first)_lidar(last): _motion from the last point time to the first
+    T_first_last = _motion(tree, lidar_frame, lidar.stamp_ns + round(t_last * 1e9),
+                           lidar.stamp_ns + round(t_first * 1e9))
+    if T_first_last is None:
         return None
-    try:
-        T_world_first = tree.lookup(world, lidar_frame, lidar.stamp_ns + round(t_first * 1e9))
-        T_world_last = tree.lookup(world, lidar_frame, lidar.stamp_ns + round(t_last * 1e9))
-    except TransformError as err:
-        log.warning("scan at %d: no odometry over its sweep (%s); the scan moves by its stamp", lidar.stamp_ns, err)
-        return None
-    twist = twist_of(invert(T_world_first) @ T_world_last, t_last - t_first)
+    twist = twist_of(T_first_last, t_last - t_first)
     offsets_s = np.where(finite, t, 0.5 * (t_first + t_last)) + (lidar.stamp_ns - camera_ns) * 1e-9
     return offsets_s, twist
 

@@ -110,7 +110,7 @@ def add_simulation_arguments(parser: argparse.ArgumentParser, frames: int, size:
     lens = parser.add_mutually_exclusive_group()
     lens.add_argument("--fisheye", action="store_true", help="equidistant fisheye cameras instead of pinhole")
     lens.add_argument("--panorama", action="store_true",
-                        help="cylindrical 360 deg panoramas (the GOM paper's Ladybug model) instead of pinhole")
+                      help="cylindrical 360 deg panoramas (the GOM paper's Ladybug model) instead of pinhole")
     parser.add_argument(
         "--compressed",
         action="store_true",
