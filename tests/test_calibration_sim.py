@@ -172,17 +172,20 @@ def test_open_scene_intensity_recovers_extrinsic(sim_dir: Path) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("feature", [
-    pytest.param("range", marks=pytest.mark.xfail(reason="4.42 deg / 81 cm: the yard has few range edges",
-                                                  strict=False)),
-    pytest.param("normals", marks=pytest.mark.xfail(reason="4.61 deg / 36 cm: image edges are mostly paint, "
-                                                           "which normals do not see", strict=False)),
-])
+@pytest.mark.parametrize("feature", ["range", "normals"])
 def test_open_scene_geometric_features(sim_dir: Path, feature: str) -> None:
+    """Range and normals on the open yard: the issue asks for 0.5 deg / 10 cm; where that is missed (both,
+    measured: range 4.43 deg / 81 cm, normals 4.60 deg / 36 cm, each with a component at the edge of the
+    5 deg / 0.5 m box) the estimate must carry the verdict ``suspect``, never a confident wrong one."""
     frames, T_init, T_true = simulated_frames(sim_dir, "open", feature, 10)
     result = calibrate(frames, T_init, CalibrationConfig())
-    assert rotation_error_deg(result.T_camera_lidar, T_true) <= 0.5
-    assert translation_error_m(result.T_camera_lidar, T_true) <= 0.1
+    rot = rotation_error_deg(result.T_camera_lidar, T_true)
+    trans = translation_error_m(result.T_camera_lidar, T_true)
+    within = rot <= 0.5 and trans <= 0.1
+    assert within or result.verdict == "suspect", f"{rot:.2f} deg / {trans:.3f} m but {result.verdict}"
+    if not within:
+        pytest.xfail(f"{feature}: {rot:.2f} deg / {100 * trans:.0f} cm, flagged suspect "
+                     f"({result.verdict_reason}); the yard's image edges are mostly paint")
 
 
 @pytest.mark.slow

@@ -27,7 +27,7 @@ from pipeline.transforms import (
     translation_error_m,
 )
 from stages.calibration import CalibrationConfig, CalibrationFrame, calibrate, compensate_ego_motion
-from stages.calibration.calibrator import agreeing_repeats
+from stages.calibration.calibrator import agreeing_repeats, box_edge
 from stages.calibration.frame import default_blur_sigma_px
 from stages.image_gradients import ImageGradients, compute_image_gradients
 from stages.lidar_features import compute_lidar_feature
@@ -218,6 +218,26 @@ def test_agreeing_repeats_counts_runs_near_the_best() -> None:
     assert agreeing_repeats(runs, 2, 0.5, 0.15) == 0
     assert agreeing_repeats(runs, 0, 3.0, 0.5) == 3
     assert agreeing_repeats(runs[:1], 0, 0.5, 0.15) == 0
+
+
+def test_box_edge_names_the_parameters_at_the_edge() -> None:
+    lower = np.array([-5.0, -5.0, -5.0, -0.5, -0.5, -0.5])
+    x = np.array([0.0, 4.95, -1.0, -0.5, 0.2, 0.489])
+    assert box_edge(x, lower, -lower, 0.02) == ["ry = +4.950 deg (box -5.000..+5.000)",
+                                                "tx = -0.500 m (box -0.500..+0.500)"]
+    assert box_edge(x, lower, -lower, 0.0) == ["tx = -0.500 m (box -0.500..+0.500)"]
+    assert box_edge(np.zeros(6), lower, -lower, 0.02) == []
+
+
+def test_start_outside_the_search_box_is_suspect(frame: CalibrationFrame) -> None:
+    """Truth 5 deg / 0.5 m from the start, box 2 deg / 0.2 m: the score keeps rising up to the box's edge,
+    where the swarm stops; that must not read as a confident recalibration."""
+    T_true = true_T_camera_lidar()
+    T_init = perturb(T_true, 5.0, 0.5, seed=3)
+    result = calibrate([frame], T_init, CalibrationConfig(search_deg=2.0, search_m=0.2, seed=1))
+    assert rotation_error_deg(result.T_camera_lidar, T_true) > 2.0  # the truth is out of reach
+    assert result.verdict == "suspect"
+    assert "edge of the search box" in result.verdict_reason
 
 
 def test_image_without_structure_is_suspect(frame: CalibrationFrame) -> None:

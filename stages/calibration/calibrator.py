@@ -57,7 +57,8 @@ class CalibrationResult:
         iterations: swarm iterations + polish steps of the returned run.
         evaluations: candidate poses scored over all repeats.
         verdict: ``ok`` (initial guess confirmed), ``recalibrated`` or ``suspect`` (GOM below
-            ``gom_suspect_below``, a flat optimum, or no other seeded run agreeing with the returned one).
+            ``gom_suspect_below``, a flat optimum, an estimate at the edge of the search box, or no other
+            seeded run agreeing with the returned one).
         verdict_reason: why ``suspect`` (empty otherwise).
         flat: True when the optimum is not distinct from its neighbourhood.
         rotation_std_deg, translation_std_m: RMS deviation of the repeats from the returned estimate
@@ -92,6 +93,21 @@ class CalibrationResult:
     metric: str
     gradient_viewpoint: str
     ring_smoothing_px: float = 0.0
+
+
+PARAMETER_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz", "focal_scale")
+PARAMETER_UNITS = ("deg", "deg", "deg", "m", "m", "m", "")
+
+
+def box_edge(x: NDArray[np.float64], lower: NDArray[np.float64], upper: NDArray[np.float64],
+             fraction: float) -> list[str]:
+    """The parameters of x that lie within ``fraction`` of the box's half-width from its edge, each
+    described as ``"ty = -0.500 m (box -0.500..0.500)"``."""
+    half = 0.5 * (upper - lower)
+    centre = 0.5 * (upper + lower)
+    at_edge = np.abs(x - centre) >= (1.0 - fraction) * half
+    return [f"{PARAMETER_NAMES[i]} = {x[i]:+.3f} {PARAMETER_UNITS[i]} (box {lower[i]:+.3f}..{upper[i]:+.3f})"
+            .replace("  (", " (") for i in np.flatnonzero(at_edge)]
 
 
 def _flat(problem: CalibrationProblem, x_best: NDArray[np.float64], best: float, chance: float) -> bool:
@@ -197,10 +213,14 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     moved = (rotation_error_deg(T_best, problem.T_init) > cfg.ok_rotation_deg
              or translation_error_m(T_best, problem.T_init) > cfg.ok_translation_m)
     reason = ""
+    edge = box_edge(x_best, problem.lower, problem.upper, cfg.box_edge_fraction)
     if cfg.metric == "gom" and score < cfg.gom_suspect_below:
         reason = f"GOM {score:.3f} is below {cfg.gom_suspect_below}"
     elif flat:
         reason = "flat optimum"
+    elif edge:
+        reason = (f"the estimate is at the edge of the search box ({'; '.join(edge)}): the best pose may lie "
+                  "outside it; check the initial guess or widen --search-deg / --search-m")
     elif len(runs) > 1 and agreeing == 0:
         reason = (f"no other of the {len(runs)} seeded runs lands within {cfg.agree_rotation_deg} deg / "
                   f"{cfg.agree_translation_m} m of the best")
