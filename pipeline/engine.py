@@ -255,7 +255,7 @@ def _iter_frames(batch: FrameBatch, skip: Callable[[str, str], None]) -> Iterato
     seeded with the log's first CameraInfo, updated by those inside the batch's range).
     """
     from readers.decode import decode_pointcloud2
-    from readers.frames import CameraInfoTracker, camera_info_topic_for, decode_camera_image
+    from readers.frames import CameraInfoTracker, decode_camera_image
     from readers.open import open_log
 
     with open_log(list(batch.paths), allow_truncated=batch.allow_truncated) as reader:
@@ -263,7 +263,7 @@ def _iter_frames(batch: FrameBatch, skip: Callable[[str, str], None]) -> Iterato
         info: CameraInfoTracker | None = None
         wanted = [batch.topic]
         if msgtype in CAMERA_TYPES:
-            info = CameraInfoTracker(reader, camera_info_topic_for(batch.topic, reader.topics))
+            info = CameraInfoTracker.for_image(reader, batch.topic)
             if info.topic is not None:
                 wanted.append(info.topic)
         for raw in reader.messages(wanted, batch.start_ns, batch.end_ns):

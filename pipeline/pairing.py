@@ -25,7 +25,6 @@ from readers.frames import (
     IMAGE_TYPES,
     POINTCLOUD2,
     CameraInfoTracker,
-    camera_info_topic_for,
     decode_camera_image,
     require_topic,
 )
@@ -173,7 +172,7 @@ def _decode_pairs(
     pending = sorted(pairs)
     lidar_frames: dict[int, LidarFrame] = {}
     camera_frames: dict[int, CameraFrame] = {}
-    info = CameraInfoTracker(reader, camera_info_topic_for(camera_topic, reader.topics))
+    info = CameraInfoTracker.for_image(reader, camera_topic)
     topics = [lidar_topic, camera_topic] + ([info.topic] if info.topic else [])
     seen = {lidar_topic: -1, camera_topic: -1}
     first_error: DecodeError | None = None

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import re
 from collections.abc import Iterable, Iterator, Mapping
 from typing import Any
 
@@ -11,7 +12,13 @@ from pipeline.errors import DecodeError, InputError, TransformError
 from pipeline.frames import CameraFrame, LidarFrame
 from pipeline.transforms import TransformTree
 from readers.base import LogReader, RawMessage, TopicInfo
-from readers.decode import decode_camera_info, decode_compressed_image, decode_image, decode_pointcloud2
+from readers.decode import (
+    decode_camera_info,
+    decode_compressed_image,
+    decode_image,
+    decode_pointcloud2,
+    rectification_rotation,
+)
 from readers.decode.tf import decode_transform
 
 log = logging.getLogger(__name__)
@@ -66,6 +73,15 @@ def camera_info_topic_for(image_topic: str, topics: Mapping[str, TopicInfo] | It
     return None
 
 
+_RECTIFIED_SEGMENT = re.compile(r"(^|_)rect(ified)?($|_)")
+
+
+def is_rectified_topic(image_topic: str) -> bool:
+    """True for an image topic named as rectified by ROS convention (a path segment ``image_rect``,
+    ``image_rect_color``, ``image_rect_raw``, ``rect`` or ``rectified``)."""
+    return any(_RECTIFIED_SEGMENT.search(part) for part in image_topic.strip("/").split("/"))
+
+
 def decode_camera_image(msgtype: str, msg: Any, topic: str, log_time_ns: int = 0) -> CameraFrame:
     """Decode an Image or CompressedImage message object by its type name."""
     if msgtype == COMPRESSED_IMAGE:
@@ -76,22 +92,37 @@ def decode_camera_image(msgtype: str, msg: Any, topic: str, log_time_ns: int = 0
 class CameraInfoTracker:
     """The latest CameraModel of a CameraInfo topic, seeded with the topic's first message.
 
-    Images that arrive before their first CameraInfo (in log order) still get a model.
+    Images that arrive before their first CameraInfo (in log order) still get a model. ``rectified``:
+    the images are rectified (``decode_camera_info(rectified=True)``: P's intrinsics, no distortion).
     """
 
-    def __init__(self, reader: LogReader, info_topic: str | None) -> None:
+    def __init__(self, reader: LogReader, info_topic: str | None, rectified: bool = False) -> None:
         self.topic = info_topic
+        self.rectified = rectified
         self.model: CameraModel | None = None
         self._failed = False
+        self._warned_rotation = False
         if info_topic is not None:
             first = next(iter(reader.messages(topics=[info_topic])), None)
             if first is not None:
                 self.update(reader, first)
 
+    @classmethod
+    def for_image(cls, reader: LogReader, image_topic: str) -> CameraInfoTracker:
+        """Tracker of the CameraInfo of ``image_topic`` (``camera_info_topic_for``), rectified when the
+        topic's name says so (``is_rectified_topic``)."""
+        return cls(reader, camera_info_topic_for(image_topic, reader.topics), is_rectified_topic(image_topic))
+
     def update(self, reader: LogReader, raw: RawMessage) -> None:
         """Take a new CameraInfo; an undecodable one keeps the previous model (warned once)."""
         try:
-            self.model = decode_camera_info(reader.deserialize(raw))
+            msg = reader.deserialize(raw)
+            self.model = decode_camera_info(msg, rectified=self.rectified)
+            if self.rectified and not self._warned_rotation and rectification_rotation(msg) > 0.01:
+                log.warning("%s: rectified images with a rectification rotation R of %.2f deg (stereo): the "
+                            "extrinsic found is that of the rectified frame, not of the raw camera frame",
+                            raw.topic, rectification_rotation(msg))
+                self._warned_rotation = True
         except DecodeError as err:
             if not self._failed:
                 log.warning("ignoring CameraInfo on %s: %s", raw.topic, err)
@@ -110,7 +141,7 @@ def iter_camera_frames(
         DecodeError, UnsupportedEncodingError: an image cannot be decoded.
     """
     msgtype = require_topic(reader, topic, IMAGE_TYPES)
-    info = CameraInfoTracker(reader, camera_info_topic_for(topic, reader.topics))
+    info = CameraInfoTracker.for_image(reader, topic)
     wanted = [topic] if info.topic is None else [topic, info.topic]
     for raw in reader.messages(topics=wanted, start_ns=start_ns, end_ns=end_ns):
         if raw.topic == info.topic:

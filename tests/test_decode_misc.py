@@ -11,11 +11,15 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from pipeline.camera_model import CameraModel
 from pipeline.errors import DecodeError, TransformError
 from pipeline.transforms import from_xyz_rpy, rotation_error_deg, translation_error_m
-from readers.decode import decode_camera_info, decode_tf
+from readers.decode import decode_camera_info, decode_tf, rectification_rotation
+from readers.frames import is_rectified_topic, iter_camera_frames
+from readers.open import open_log
 from stages.sinks import ros_messages as rm
 from stages.sinks.log_writer import LogWriter
 from stages.sinks.ros_messages import Profile
@@ -202,3 +206,75 @@ def test_real_logs_camera_info_and_tf(shared_data: Path, log: str) -> None:
             T_expected = np.array(pair["T_camera_lidar_in_log"])
             if tree.is_static_path(pair["camera_frame"], truth["lidar_frame"]):
                 np.testing.assert_allclose(T_log, T_expected, atol=1e-6)
+
+
+def _info_with_new_camera_matrix(profile: Profile = "ros2") -> tuple[Any, NDArray[np.float64]]:
+    """CameraInfo of a distorted 640x480 camera whose P holds the new camera matrix of its rectified
+    images (OpenCV, alpha 0: only valid pixels), as camera_calibration writes it."""
+    D = MODELS["plumb_bob"]
+    K_rect, _ = cv2.getOptimalNewCameraMatrix(K, D, (640, 480), 0.0)
+    msg = rm.camera_info(5, "cam", CameraModel(640, 480, K, D, "plumb_bob"), profile)
+    P = np.zeros((3, 4))
+    P[:, :3] = K_rect
+    return dataclasses.replace(msg, **{("P" if profile == "ros1" else "p"): P.reshape(-1)}), K_rect
+
+
+@pytest.mark.parametrize("profile", ["ros2", "ros1"])
+def test_rectified_images_project_like_opencv_rectification(profile: Profile) -> None:
+    """A point's pixel in the rectified image (the raw pixel undistorted by OpenCV into P's camera
+    matrix) is where the rectified model projects it, to 1e-3 px; the raw model would be off by pixels."""
+    msg, K_rect = _info_with_new_camera_matrix(profile)
+    msg = _roundtrip(msg, "sensor_msgs/msg/CameraInfo", profile)
+    raw = decode_camera_info(msg)
+    rect = decode_camera_info(msg, rectified=True)
+    assert rect.distortion_model == "none" and rect.D.size == 0
+    np.testing.assert_allclose(rect.K, K_rect)
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(4, 20, 200)
+    points = np.column_stack([depth * rng.uniform(-0.4, 0.4, 200), depth * rng.uniform(-0.3, 0.3, 200), depth])
+    uv_raw, ok_raw = raw.project(points)
+    uv_rect, ok_rect = rect.project(points)
+    assert ok_raw.all() and ok_rect.all()
+    uv_cv = cv2.undistortPoints(uv_raw.reshape(-1, 1, 2), K, raw.D, P=K_rect).reshape(-1, 2)
+    np.testing.assert_allclose(uv_rect, uv_cv, atol=1e-3)
+    assert np.max(np.linalg.norm(uv_raw - uv_cv, axis=1)) > 5.0
+
+
+def test_rectified_camera_info_without_P_keeps_K_and_reports_its_rotation() -> None:
+    msg = rm.camera_info(5, "cam", CameraModel(640, 480, K, MODELS["plumb_bob"], "plumb_bob"))
+    no_p = decode_camera_info(dataclasses.replace(msg, p=np.zeros(12)), rectified=True)
+    np.testing.assert_array_equal(no_p.K, K)
+    assert no_p.distortion_model == "none"
+    assert rectification_rotation(msg) == 0.0
+    assert rectification_rotation(dataclasses.replace(msg, r=np.zeros(9))) == 0.0  # unset
+    R = Rotation.from_euler("y", 3.0, degrees=True).as_matrix()
+    assert rectification_rotation(dataclasses.replace(msg, r=R.reshape(-1))) == pytest.approx(3.0)
+
+
+def test_rectified_topic_names() -> None:
+    for topic in ("/cam/image_rect", "/cam/image_rect_color", "/cam/image_rect_color/compressed",
+                  "/camera/depth/image_rect_raw", "/cam/rect/image", "/stereo/left/image_rectified"):
+        assert is_rectified_topic(topic), topic
+    for topic in ("/cam/image_raw", "/cam/image/compressed", "/direct/image", "/rectangle_cam/image_raw",
+                  "/cam/image_color"):
+        assert not is_rectified_topic(topic), topic
+
+
+def test_rectified_and_raw_topics_of_one_camera_get_their_own_models(tmp_path: Path) -> None:
+    """``/cam/image_raw`` and ``/cam/image_rect_color`` share ``/cam/camera_info``: the raw images get K and
+    the distortion, the rectified ones P's intrinsics and none."""
+    msg, K_rect = _info_with_new_camera_matrix()
+    path = tmp_path / "rect.mcap"
+    img = np.zeros((480, 640), np.uint8)
+    with LogWriter(path, "mcap") as writer:
+        writer.write("/cam/camera_info", "sensor_msgs/msg/CameraInfo", 1, msg)
+        for topic in ("/cam/image_raw", "/cam/image_rect_color"):
+            writer.write(topic, "sensor_msgs/msg/Image", 2, rm.image(2, "cam", img, "mono8"))
+    with open_log(path) as reader:
+        raw = next(iter_camera_frames(reader, "/cam/image_raw")).camera
+        rect = next(iter_camera_frames(reader, "/cam/image_rect_color")).camera
+    assert raw is not None and rect is not None
+    assert raw.distortion_model == "plumb_bob"
+    np.testing.assert_array_equal(raw.K, K)
+    assert rect.distortion_model == "none"
+    np.testing.assert_allclose(rect.K, K_rect)

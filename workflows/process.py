@@ -23,7 +23,7 @@ from pipeline.engine import Engine
 from pipeline.frames import LidarFrame
 from pipeline.pairing import raw_header_stamp_ns
 from pipeline.transforms import apply
-from readers.frames import CameraInfoTracker, camera_info_topic_for, decode_camera_image
+from readers.frames import CameraInfoTracker, decode_camera_image
 from readers.open import open_log
 from stages.colorize import colorize, fill_unseen
 from stages.registration.pointset import PointSet
@@ -116,7 +116,7 @@ def _nearest_image(reader: Any, topic: str, stamp_ns: int, tolerance_ns: int) ->
 @functools.lru_cache(maxsize=16)
 def _camera_model(reader: Any, topic: str) -> Any:
     """The first CameraInfo of ``topic``'s camera, read once per worker and topic."""
-    return CameraInfoTracker(reader, camera_info_topic_for(topic, reader.topics)).model
+    return CameraInfoTracker.for_image(reader, topic).model
 
 
 def colorize_scan(frame: LidarFrame, source: ColorSource) -> LidarFrame:

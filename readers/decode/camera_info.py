@@ -20,12 +20,17 @@ def _array(msg: Any, name: str) -> NDArray[np.float64]:
     return np.asarray(value, dtype=np.float64).reshape(-1)
 
 
-def decode_camera_info(msg: Any) -> CameraModel:
+def decode_camera_info(msg: Any, rectified: bool = False) -> CameraModel:
     """Camera model of a CameraInfo message object: size, K (3x3), D and the distortion model.
 
     ``plumb_bob``, ``rational_polynomial`` and ``equidistant`` (also ``fisheye``, ``radtan``,
     ``cylindrical``, and an empty string for no distortion) are understood. Binning and ROI are
     not applied: the model describes the full-resolution image of ``width`` x ``height``.
+
+    ``rectified``: the model of the image_proc-rectified image (``image_rect``) instead of the raw one,
+    as ROS defines it: the distortion is already removed and the intrinsics are the left 3x3 of P
+    (K where P is all zero), with no distortion model. R and P's baseline column are not applied
+    (``rectification_rotation`` tells whether R differs from the identity, as for a stereo pair).
 
     Raises:
         DecodeError: K all zero (uncalibrated camera), not finite, or not 9 values; an unknown
@@ -38,6 +43,21 @@ def decode_camera_info(msg: Any) -> CameraModel:
         raise DecodeError("CameraInfo K is not finite")
     if not np.any(K):
         raise DecodeError("CameraInfo K is all zero (camera not calibrated)")
+    if rectified:
+        P = _array(msg, "p")
+        if P.size == 12 and np.all(np.isfinite(P)) and np.any(P):
+            K = P.reshape(3, 4)[:, :3].reshape(-1)
+        return CameraModel(int(msg.width), int(msg.height), K.reshape(3, 3), np.zeros(0), "none")
     D = _array(msg, "d")
     model = str(msg.distortion_model).strip().lower()
     return CameraModel(int(msg.width), int(msg.height), K.reshape(3, 3), D, model)
+
+
+def rectification_rotation(msg: Any) -> float:
+    """Angle (degrees) of the CameraInfo's rectification rotation R; 0 for a monocular camera (R = I or
+    unset)."""
+    R = _array(msg, "r")
+    if R.size != 9 or not np.all(np.isfinite(R)) or not np.any(R):
+        return 0.0
+    cos_angle = np.clip((np.trace(R.reshape(3, 3)) - 1.0) / 2.0, -1.0, 1.0)
+    return float(np.degrees(np.arccos(cos_angle)))
