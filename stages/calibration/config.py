@@ -67,7 +67,9 @@ class CalibrationConfig:
             fraction of the box's half-width from the box's edge is ``suspect``: the objective still rose
             at the edge, so its maximum may lie outside the box (a start further off than the box, or an
             objective misled by the scene). Simulated open yard, normals, default 5 deg / 0.5 m box: the
-            swarm ended 4.6 deg / 36 cm off with ty at -0.500 m, and had been ``recalibrated``.
+            swarm ended 4.6 deg / 36 cm off with tx at -0.500 m, and had been ``recalibrated`` (range:
+            4.4 deg / 81 cm, rx and ty at the edge). Flags none of the real logs' results from their tf,
+            nor any of the 10 KITTI starts 5 deg / 0.5 m off in a 10 deg / 1 m box.
         occlusion_filter: at preparation (initial guess, after ego-motion) drop lidar points hidden from
             the camera behind nearer lidar points, per frame, with the coarse z-buffer of
             ``stages.colorize.unoccluded`` (cells of ``occlusion_cell_px`` pixels; a point is kept when
