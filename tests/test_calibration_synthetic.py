@@ -29,6 +29,7 @@ from pipeline.transforms import (
 from stages.calibration import CalibrationConfig, CalibrationFrame, calibrate, compensate_ego_motion
 from stages.calibration.calibrator import agreeing_repeats, box_edge
 from stages.calibration.frame import default_blur_sigma_px
+from stages.calibration.problem import CalibrationProblem
 from stages.image_gradients import ImageGradients, compute_image_gradients
 from stages.lidar_features import compute_lidar_feature
 
@@ -238,6 +239,19 @@ def test_start_outside_the_search_box_is_suspect(frame: CalibrationFrame) -> Non
     assert rotation_error_deg(result.T_camera_lidar, T_true) > 2.0  # the truth is out of reach
     assert result.verdict == "suspect"
     assert "edge of the search box" in result.verdict_reason
+
+
+def test_overlap_limit_is_reported_where_a_frame_projects_no_more_than_its_minimum(
+        frame: CalibrationFrame) -> None:
+    """At the initial guess a frame projects its own reference count: with the limit at 99 % of it the
+    frame is on the limit (within 2 %), with the default half of it it is not."""
+    T_true = true_T_camera_lidar()
+    tight = CalibrationProblem([frame], T_true, CalibrationConfig(search_deg=2.0, search_m=0.2,
+                                                                   min_overlap_fraction=0.99))
+    limited = tight.overlap_limited(np.zeros(6), 0.02)
+    assert len(limited) == 1 and limited[0].startswith("frame 1") and "limit" in limited[0]
+    loose = CalibrationProblem([frame], T_true, CalibrationConfig(search_deg=2.0, search_m=0.2))
+    assert loose.overlap_limited(np.zeros(6), 0.02) == []
 
 
 def test_image_without_structure_is_suspect(frame: CalibrationFrame) -> None:

@@ -57,8 +57,8 @@ class CalibrationResult:
         iterations: swarm iterations + polish steps of the returned run.
         evaluations: candidate poses scored over all repeats.
         verdict: ``ok`` (initial guess confirmed), ``recalibrated`` or ``suspect`` (GOM below
-            ``gom_suspect_below``, a flat optimum, an estimate at the edge of the search box, or no other
-            seeded run agreeing with the returned one).
+            ``gom_suspect_below``, a flat optimum, an estimate at the edge of the search box or on a
+            frame's overlap limit, or no other seeded run agreeing with the returned one).
         verdict_reason: why ``suspect`` (empty otherwise).
         flat: True when the optimum is not distinct from its neighbourhood.
         rotation_std_deg, translation_std_m: RMS deviation of the repeats from the returned estimate
@@ -214,6 +214,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
              or translation_error_m(T_best, problem.T_init) > cfg.ok_translation_m)
     reason = ""
     edge = box_edge(x_best, problem.lower, problem.upper, cfg.box_edge_fraction)
+    held = problem.overlap_limited(x_best, cfg.box_edge_fraction) if cfg.min_overlap_fraction > 0 else []
     if cfg.metric == "gom" and score < cfg.gom_suspect_below:
         reason = f"GOM {score:.3f} is below {cfg.gom_suspect_below}"
     elif flat:
@@ -221,6 +222,9 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     elif edge:
         reason = (f"the estimate is at the edge of the search box ({'; '.join(edge)}): the best pose may lie "
                   "outside it; check the initial guess or widen --search-deg / --search-m")
+    elif held:
+        reason = (f"the estimate sits on the overlap limit ({'; '.join(held)}): fewer lidar points in view "
+                  "would have scored higher; check the initial guess")
     elif len(runs) > 1 and agreeing == 0:
         reason = (f"no other of the {len(runs)} seeded runs lands within {cfg.agree_rotation_deg} deg / "
                   f"{cfg.agree_translation_m} m of the best")

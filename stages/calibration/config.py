@@ -41,6 +41,10 @@ class CalibrationConfig:
             points it projects at the initial guess scores 0 for that frame. Without it the
             normalised GOM can peak where only a few hundred points remain in view (KITTI, 10 deg
             box: 0.767 at 19 deg off with 763 + 208 points vs 0.760 at the truth with 10924 + 4248).
+            The limit can hold the truth out when the start is far off: KITTI from 7 deg / 0.7 m, box
+            10 deg / 1 m, one start of 3 ended 0.69 deg / 74 cm off, on a frame's limit (5908 points,
+            limit 5907; the truth projects 4075). An estimate within ``box_edge_fraction`` above a limit is
+            therefore ``suspect``, like one at the box's edge.
         nmi_bins: histogram bins per axis for NMI.
         levinson_blur_px, levinson_min_jump_m: Levinson edge blur and depth-jump threshold.
         flat_fraction: optimum is "flat" when perturbing it by ``flat_probe_deg`` lowers the score

@@ -286,6 +286,21 @@ class CalibrationProblem:
                 counts[:, k] = np.maximum(counts[:, k], seen)
         return scores, counts
 
+    def overlap_limited(self, x: NDArray[np.floating], fraction: float) -> list[str]:
+        """Frames whose feature channels project at most ``1 + fraction`` times their minimum count (the
+        overlap limit, ``min_overlap_fraction`` of the count at the initial guess) at parameters x (D,),
+        each described as ``"frame 2 (/cam): 5908 points, limit 5907"``: there the limit, not the
+        metric, held the optimum."""
+        limited = []
+        for k, frame in enumerate(self._batches(np.asarray(x)[None])):
+            for c, batch in enumerate(frame):
+                seen, limit = int(batch.counts[0]), int(self.min_counts[k][c])
+                if limit <= seen <= (1.0 + fraction) * limit:
+                    label = f" ({self.frames[k].label})" if self.frames[k].label else ""
+                    limited.append(f"frame {k + 1}{label}: {seen} points, limit {limit}")
+                    break
+        return limited
+
     def evaluate(self, x: NDArray[np.floating]) -> NDArray[np.float64]:
         """Mean score over frames for parameters (P, D) -> (P,)."""
         return np.asarray(self.frame_scores(x)[0].mean(axis=1))
