@@ -147,12 +147,12 @@ def test_kitti_from_5deg_off_in_a_box_wide_in_rotation_only() -> None:
 
 @pytest.mark.slow
 def test_kitti_far_start_held_by_the_overlap_limit_is_suspect() -> None:
-    """7 deg / 0.7 m off, box 10 deg / 1 m: this start ends 0.69 deg / 74 cm off, confirmed by another
-    seeded run. Every GOM channel scores higher at the truth (0.767 / 0.604 / 0.760 / 0.667 vs 0.761 / 0.597 /
-    0.741 / 0.650), but at the truth frame 2 projects 4075 points, under its overlap limit (half of
-    the 11814 at the initial guess), and its score is zeroed. The estimate sits on that limit (5908 points,
-    limit 5907). It must be within 0.3 deg / 10 cm or ``suspect``: the overlap limit, not the metric, held it
-    (other starts 7 deg / 0.7 m off: 0.19 deg / 3.4 cm and 0.22 / 2.8, both ``recalibrated``)."""
+    """7 deg / 0.7 m off, box 10 deg / 1 m. With the overlap limit at half the initial guess's count, this
+    start ended 0.69 deg / 74 cm off, confirmed by another seeded run. Every GOM channel scores higher at
+    the truth (0.767 / 0.604 / 0.760 / 0.667 vs 0.761 / 0.597 / 0.741 / 0.650), but at the truth frame 2
+    projects 4075 points, under that limit (half of 11814), so its score was zeroed. The estimate sat on
+    the limit (5908 points against 5907). At 0.3 of the count (now the default) it measures 0.083 deg /
+    6.4 cm. The test requires within 0.3 deg / 10 cm, or ``suspect``: never confidently wrong."""
     log_path("kitti_2011_09_26.mcap")
     problem = load_real_frames("kitti_2011_09_26.mcap")
     T_start = perturb(problem.T_true, 7.0, 0.7, seed=202)

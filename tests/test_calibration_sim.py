@@ -178,8 +178,9 @@ def test_open_scene_intensity_recovers_extrinsic(sim_dir: Path) -> None:
 @pytest.mark.parametrize("feature", ["range", "normals"])
 def test_open_scene_geometric_features(sim_dir: Path, feature: str) -> None:
     """Range and normals on the open yard: the issue asks for 0.5 deg / 10 cm; where that is missed (both,
-    measured: range 4.43 deg / 81 cm, normals 4.60 deg / 36 cm, each with a component at the edge of the
-    5 deg / 0.5 m box) the estimate must carry the verdict ``suspect``, never a confident wrong one."""
+    measured: range 4.43 deg / 81 cm, normals 7.32 deg / 106 cm (4.60 / 36 with the overlap limit at 0.5),
+    each with components at the edge of the 5 deg / 0.5 m box) the estimate must carry the verdict
+    ``suspect``, never a confident wrong one."""
     frames, T_init, T_true = simulated_frames(sim_dir, "open", feature, 10)
     result = calibrate(frames, T_init, CalibrationConfig())
     rot = rotation_error_deg(result.T_camera_lidar, T_true)
