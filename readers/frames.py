@@ -118,11 +118,13 @@ class CameraInfoTracker:
         try:
             msg = reader.deserialize(raw)
             self.model = decode_camera_info(msg, rectified=self.rectified)
-            if self.rectified and not self._warned_rotation and rectification_rotation(msg) > 0.01:
-                log.warning("%s: rectified images with a rectification rotation R of %.2f deg (stereo): the "
-                            "extrinsic found is that of the rectified frame, not of the raw camera frame",
-                            raw.topic, rectification_rotation(msg))
-                self._warned_rotation = True
+            if self.rectified and not self._warned_rotation:
+                angle_deg = rectification_rotation(msg)
+                if angle_deg > 0.01:
+                    log.warning("%s: rectified images with a rectification rotation R of %.2f deg (stereo): "
+                                "the extrinsic found is that of the rectified frame, not of the raw camera "
+                                "frame", raw.topic, angle_deg)
+                    self._warned_rotation = True
         except DecodeError as err:
             if not self._failed:
                 log.warning("ignoring CameraInfo on %s: %s", raw.topic, err)

@@ -278,3 +278,19 @@ def test_rectified_and_raw_topics_of_one_camera_get_their_own_models(tmp_path: P
     np.testing.assert_array_equal(raw.K, K)
     assert rect.distortion_model == "none"
     np.testing.assert_allclose(rect.K, K_rect)
+
+
+def test_stereo_rectification_rotation_is_warned_once(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    msg, _ = _info_with_new_camera_matrix()
+    R = Rotation.from_euler("y", 1.5, degrees=True).as_matrix()
+    msg = dataclasses.replace(msg, r=R.reshape(-1))
+    path = tmp_path / "stereo.mcap"
+    with LogWriter(path, "mcap") as writer:
+        for t in (1, 3):
+            writer.write("/cam/camera_info", "sensor_msgs/msg/CameraInfo", t, msg)
+            writer.write("/cam/image_rect", "sensor_msgs/msg/Image", t + 1,
+                         rm.image(t + 1, "cam", np.zeros((480, 640), np.uint8), "mono8"))
+    with open_log(path) as reader, caplog.at_level(logging.WARNING):
+        assert len(list(iter_camera_frames(reader, "/cam/image_rect"))) == 2
+    warned = [r.getMessage() for r in caplog.records if "rectification rotation" in r.getMessage()]
+    assert len(warned) == 1 and "1.50 deg" in warned[0]

@@ -96,7 +96,7 @@ class CalibrationResult:
 
 
 PARAMETER_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz", "focal_scale")
-PARAMETER_UNITS = ("deg", "deg", "deg", "m", "m", "m", "")
+PARAMETER_UNITS = (" deg", " deg", " deg", " m", " m", " m", "")  # as printed after the value
 
 
 def box_edge(x: NDArray[np.float64], lower: NDArray[np.float64], upper: NDArray[np.float64],
@@ -106,8 +106,8 @@ def box_edge(x: NDArray[np.float64], lower: NDArray[np.float64], upper: NDArray[
     half = 0.5 * (upper - lower)
     centre = 0.5 * (upper + lower)
     at_edge = np.abs(x - centre) >= (1.0 - fraction) * half
-    return [f"{PARAMETER_NAMES[i]} = {x[i]:+.3f} {PARAMETER_UNITS[i]} (box {lower[i]:+.3f}..{upper[i]:+.3f})"
-            .replace("  (", " (") for i in np.flatnonzero(at_edge)]
+    return [f"{PARAMETER_NAMES[i]} = {x[i]:+.3f}{PARAMETER_UNITS[i]} (box {lower[i]:+.3f}..{upper[i]:+.3f})"
+            for i in np.flatnonzero(at_edge)]
 
 
 def _flat(problem: CalibrationProblem, x_best: NDArray[np.float64], best: float, chance: float) -> bool:
