@@ -2,7 +2,9 @@
 fisheye, and the GOM paper's cylindrical panorama (eq. 6).
 
 Points are in the camera *optical* frame (x right, y down, z forward), metres; pixels are (u, v)
-with the origin at the centre of the top-left pixel.
+with the origin at the centre of the top-left pixel. The images of a rectified stereo camera were
+taken in a frame turned by the CameraInfo's rectification rotation R; ``R_rect`` carries it, and
+``project`` / ``unproject`` apply it, so that points stay in the camera's own (tf) optical frame.
 """
 
 from __future__ import annotations
@@ -30,6 +32,9 @@ class CameraModel:
         D: distortion coefficients; plumb_bob (k1 k2 p1 p2 k3), rational_polynomial
             (k1 k2 p1 p2 k3 k4 k5 k6), equidistant (k1 k2 k3 k4).
         distortion_model: one of ``DISTORTION_MODELS``.
+        R_rect: 3x3 rotation from the camera's optical frame to the frame its images were rectified
+            into (``p_rect = R_rect @ p``, the CameraInfo's R of a stereo pair, as OpenCV's
+            ``undistortPoints(..., R, P)`` applies it); None: the identity.
     """
 
     width: int
@@ -37,6 +42,7 @@ class CameraModel:
     K: NDArray[np.float64]
     D: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
     distortion_model: str = "plumb_bob"
+    R_rect: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
         K = np.asarray(self.K, dtype=np.float64).reshape(3, 3)
@@ -53,6 +59,8 @@ class CameraModel:
             raise DecodeError("camera distortion coefficients are not finite")
         if self.width <= 0 or self.height <= 0:
             raise DecodeError(f"camera size {self.width}x{self.height} is not positive")
+        if self.R_rect is not None:
+            object.__setattr__(self, "R_rect", _rotation(self.R_rect))
 
     @property
     def fx(self) -> float:
@@ -82,15 +90,21 @@ class CameraModel:
         K = self.K.copy()
         K[0, 0] *= scale
         K[1, 1] *= scale
-        return CameraModel(self.width, self.height, K, self.D, self.distortion_model)
+        return CameraModel(self.width, self.height, K, self.D, self.distortion_model, self.R_rect)
+
+    def without_rectification(self) -> CameraModel:
+        """The same intrinsics for points already in the rectified frame (``R_rect`` dropped)."""
+        return CameraModel(self.width, self.height, self.K, self.D, self.distortion_model)
 
     def project(self, points_cam: NDArray[np.floating]) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-        """Project (N, 3) optical-frame points to pixels.
+        """Project (N, 3) optical-frame points to pixels (turned by ``R_rect`` first, when set).
 
         Returns (uv (N, 2), valid (N,)); valid is False behind the camera, outside the image or where
         distortion folds over.
         """
         p = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
+        if self.R_rect is not None:
+            p = p @ self.R_rect.T
         x, y, z = p[:, 0], p[:, 1], p[:, 2]
         model = self.distortion_model
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -154,7 +168,15 @@ class CameraModel:
         return float(rs[int(np.argmin(grow))])
 
     def unproject(self, uv: NDArray[np.floating]) -> NDArray[np.float64]:
-        """Unit-depth rays (N, 3) for pixels (N, 2): z = 1 for pinhole models, unit vectors otherwise."""
+        """Rays (N, 3) for pixels (N, 2) in the optical frame: unit depth (z = 1) for pinhole models
+        without ``R_rect``, unit vectors otherwise."""
+        rays = self._unproject_rectified(uv)
+        if self.R_rect is None:
+            return rays
+        rays = rays @ self.R_rect  # R^T applied to each row
+        return np.asarray(rays / np.linalg.norm(rays, axis=1, keepdims=True))
+
+    def _unproject_rectified(self, uv: NDArray[np.floating]) -> NDArray[np.float64]:
         uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
         if self.distortion_model == "cylindrical":
             theta = (uv[:, 0] - self.cx) / self.fx
@@ -189,4 +211,16 @@ def with_model(camera: CameraModel | None, model: str) -> CameraModel | None:
     and D); ``log`` or a missing camera: unchanged (``calibration.camera_model``)."""
     if camera is None or model == "log" or model == camera.distortion_model:
         return camera
-    return CameraModel(camera.width, camera.height, camera.K, camera.D, model)
+    return CameraModel(camera.width, camera.height, camera.K, camera.D, model, camera.R_rect)
+
+
+def _rotation(R: NDArray[np.floating], tol: float = 1e-3) -> NDArray[np.float64]:
+    """R as a 3x3 float64 rotation (re-orthonormalised; CameraInfo stores it in printed decimals)."""
+    m = np.asarray(R, dtype=np.float64)
+    if m.size != 9 or not np.all(np.isfinite(m)):
+        raise DecodeError("camera rectification rotation R must be 9 finite values")
+    m = m.reshape(3, 3)
+    if np.max(np.abs(m @ m.T - np.eye(3))) > tol or np.linalg.det(m) <= 0:
+        raise DecodeError("camera rectification rotation R is not a rotation matrix")
+    u, _, vt = np.linalg.svd(m)
+    return np.asarray(u @ vt)

@@ -93,7 +93,8 @@ class CameraInfoTracker:
     """The latest CameraModel of a CameraInfo topic, seeded with the topic's first message.
 
     Images that arrive before their first CameraInfo (in log order) still get a model. ``rectified``:
-    the images are rectified (``decode_camera_info(rectified=True)``: P's intrinsics, no distortion).
+    the images are rectified (``decode_camera_info(rectified=True)``: P's intrinsics, no distortion,
+    a stereo camera's rectification rotation R as ``R_rect``).
     """
 
     def __init__(self, reader: LogReader, info_topic: str | None, rectified: bool = False) -> None:
@@ -101,7 +102,7 @@ class CameraInfoTracker:
         self.rectified = rectified
         self.model: CameraModel | None = None
         self._failed = False
-        self._warned_rotation = False
+        self._told_rotation = False
         if info_topic is not None:
             first = next(iter(reader.messages(topics=[info_topic])), None)
             if first is not None:
@@ -118,13 +119,12 @@ class CameraInfoTracker:
         try:
             msg = reader.deserialize(raw)
             self.model = decode_camera_info(msg, rectified=self.rectified)
-            if self.rectified and not self._warned_rotation:
+            if self.rectified and not self._told_rotation:
                 angle_deg = rectification_rotation(msg)
                 if angle_deg > 0.01:
-                    log.warning("%s: rectified images with a rectification rotation R of %.2f deg (stereo): "
-                                "the extrinsic found is that of the rectified frame, not of the raw camera "
-                                "frame", raw.topic, angle_deg)
-                    self._warned_rotation = True
+                    log.info("%s: rectified images turned by a rectification rotation R of %.2f deg "
+                             "(stereo); points are turned by R before projecting", raw.topic, angle_deg)
+                    self._told_rotation = True
         except DecodeError as err:
             if not self._failed:
                 log.warning("ignoring CameraInfo on %s: %s", raw.topic, err)

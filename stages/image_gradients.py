@@ -140,7 +140,7 @@ def undistort_image(
     model = camera.distortion_model
     if model == "cylindrical":
         raise InputError("a cylindrical (panoramic) camera cannot be undistorted to a pinhole image")
-    pinhole = CameraModel(camera.width, camera.height, camera.K.copy(), np.zeros(5), "plumb_bob")
+    pinhole = CameraModel(camera.width, camera.height, camera.K.copy(), np.zeros(5), "plumb_bob", camera.R_rect)
     if model == "none" or not np.any(camera.D):
         return image, pinhole
     if model == "equidistant":

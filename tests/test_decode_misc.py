@@ -280,7 +280,44 @@ def test_rectified_and_raw_topics_of_one_camera_get_their_own_models(tmp_path: P
     np.testing.assert_allclose(rect.K, K_rect)
 
 
-def test_stereo_rectification_rotation_is_warned_once(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+@pytest.mark.parametrize("profile", ["ros2", "ros1"])
+def test_stereo_rectified_images_project_like_opencv_with_R(profile: Profile) -> None:
+    """A stereo camera's images rectified with R: a point in the camera's own frame lands where OpenCV's
+    ``undistortPoints(raw pixel, K, D, R, P)`` puts it (1e-3 px); without R about 18 px off."""
+    msg, K_rect = _info_with_new_camera_matrix(profile)
+    R = Rotation.from_euler("xyz", [0.8, -1.7, 0.4], degrees=True).as_matrix()
+    msg = _roundtrip(dataclasses.replace(msg, **{("R" if profile == "ros1" else "r"): R.reshape(-1)}),
+                     "sensor_msgs/msg/CameraInfo", profile)
+    raw = decode_camera_info(msg)
+    rect = decode_camera_info(msg, rectified=True)
+    assert raw.R_rect is None and rect.R_rect is not None
+    np.testing.assert_allclose(rect.R_rect, R, atol=1e-12)
+    rng = np.random.default_rng(1)
+    depth = rng.uniform(4, 20, 200)
+    points = np.column_stack([depth * rng.uniform(-0.3, 0.3, 200), depth * rng.uniform(-0.2, 0.2, 200), depth])
+    uv_raw, ok_raw = raw.project(points)
+    uv_rect, ok_rect = rect.project(points)
+    assert ok_raw.all() and ok_rect.all()
+    uv_cv = cv2.undistortPoints(uv_raw.reshape(-1, 1, 2), K, raw.D, R=R, P=K_rect).reshape(-1, 2)
+    np.testing.assert_allclose(uv_rect, uv_cv, atol=1e-3)
+    uv_no_r, _ = rect.without_rectification().project(points)
+    assert np.median(np.linalg.norm(uv_no_r - uv_cv, axis=1)) > 10.0
+    again = decode_camera_info(rm.camera_info(5, "cam", rect, profile), rectified=True)  # written back
+    assert again.R_rect is not None
+    np.testing.assert_allclose(again.R_rect, R, atol=1e-12)
+    rays = rect.unproject(uv_rect)  # back into the camera's frame
+    np.testing.assert_allclose(rays, points / np.linalg.norm(points, axis=1, keepdims=True), atol=1e-9)
+
+
+def test_rectification_R_that_is_not_a_rotation_is_a_decode_error() -> None:
+    msg, _ = _info_with_new_camera_matrix()
+    bad = dataclasses.replace(msg, r=(2.0 * np.eye(3)).reshape(-1))
+    with pytest.raises(DecodeError, match="not a rotation"):
+        decode_camera_info(bad, rectified=True)
+    assert decode_camera_info(bad).R_rect is None  # the raw images do not use R
+
+
+def test_stereo_rectification_rotation_is_told_once(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     msg, _ = _info_with_new_camera_matrix()
     R = Rotation.from_euler("y", 1.5, degrees=True).as_matrix()
     msg = dataclasses.replace(msg, r=R.reshape(-1))
@@ -290,7 +327,9 @@ def test_stereo_rectification_rotation_is_warned_once(tmp_path: Path, caplog: py
             writer.write("/cam/camera_info", "sensor_msgs/msg/CameraInfo", t, msg)
             writer.write("/cam/image_rect", "sensor_msgs/msg/Image", t + 1,
                          rm.image(t + 1, "cam", np.zeros((480, 640), np.uint8), "mono8"))
-    with open_log(path) as reader, caplog.at_level(logging.WARNING):
-        assert len(list(iter_camera_frames(reader, "/cam/image_rect"))) == 2
-    warned = [r.getMessage() for r in caplog.records if "rectification rotation" in r.getMessage()]
-    assert len(warned) == 1 and "1.50 deg" in warned[0]
+    with open_log(path) as reader, caplog.at_level(logging.INFO):
+        frames = list(iter_camera_frames(reader, "/cam/image_rect"))
+    assert len(frames) == 2
+    assert all(f.camera is not None and f.camera.R_rect is not None for f in frames)
+    told = [r.getMessage() for r in caplog.records if "rectification rotation" in r.getMessage()]
+    assert len(told) == 1 and "1.50 deg" in told[0]

@@ -28,13 +28,15 @@ def decode_camera_info(msg: Any, rectified: bool = False) -> CameraModel:
     not applied: the model describes the full-resolution image of ``width`` x ``height``.
 
     ``rectified``: the model of the image_proc-rectified image (``image_rect``) instead of the raw one,
-    as ROS defines it: the distortion is already removed and the intrinsics are the left 3x3 of P
-    (K where P is all zero), with no distortion model. R and P's baseline column are not applied
-    (``rectification_rotation`` tells whether R differs from the identity, as for a stereo pair).
+    as ROS defines it: the distortion is already removed, the intrinsics are the left 3x3 of P (K where
+    P is all zero), with no distortion model, and a stereo camera's rectification rotation R (not the
+    identity) becomes ``R_rect``, so points in the camera's tf frame project where the rectified image
+    shows them. P's baseline column (Tx = -fx B of a right camera) is not applied: the image's tf
+    frame is taken to be that camera's own.
 
     Raises:
         DecodeError: K all zero (uncalibrated camera), not finite, or not 9 values; an unknown
-            distortion model; a non-positive image size.
+            distortion model; a non-positive image size; a rectified camera's R set but not a rotation.
     """
     K = _array(msg, "k")
     if K.size != 9:
@@ -47,7 +49,10 @@ def decode_camera_info(msg: Any, rectified: bool = False) -> CameraModel:
         P = _array(msg, "p")
         if P.size == 12 and np.all(np.isfinite(P)) and np.any(P):
             K = P.reshape(3, 4)[:, :3].reshape(-1)
-        return CameraModel(int(msg.width), int(msg.height), K.reshape(3, 3), np.zeros(0), "none")
+        R = _array(msg, "r")
+        is_set = R.size == 9 and bool(np.any(R)) and not np.array_equal(R, np.eye(3).reshape(-1))
+        R_rect = R.reshape(3, 3) if is_set else None  # validated by CameraModel
+        return CameraModel(int(msg.width), int(msg.height), K.reshape(3, 3), np.zeros(0), "none", R_rect)
     D = _array(msg, "d")
     model = str(msg.distortion_model).strip().lower()
     return CameraModel(int(msg.width), int(msg.height), K.reshape(3, 3), D, model)

@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 from pipeline.errors import ProcessingError
 from pipeline.transforms import rotation_error_deg, translation_error_m
 from stages.calibration.config import CalibrationConfig
-from stages.calibration.frame import CalibrationFrame, Mat4
+from stages.calibration.frame import CalibrationFrame, Mat4, fold_rectification
 from stages.calibration.problem import CalibrationProblem
 from stages.calibration.sphere_gradients import cross_ring_neighbours, sphere_coordinates
 
@@ -166,7 +166,7 @@ def resolve_auto_rules(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4
         return config
     points = np.asarray(frames[0].points_xyz, dtype=np.float64)
     points = points[np.all(np.isfinite(points), axis=1)]
-    R = (np.asarray(frames[0].T_camera_camera0) @ np.asarray(T_camera_lidar_init))[:3, :3]
+    R = (np.asarray(fold_rectification(frames[0]).T_camera_camera0) @ np.asarray(T_camera_lidar_init))[:3, :3]
     if cross_ring_neighbours(sphere_coordinates(points @ R.T), config.sphere_k) >= 2:
         return config
     return dataclasses.replace(config, gradient_viewpoint="lidar" if pick_view else config.gradient_viewpoint,

@@ -3,7 +3,7 @@ image gradients, ego-motion), and the per-frame work that builds them from decod
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
@@ -80,6 +80,19 @@ class CalibrationFrame:
             R_scan = np.asarray(self.T_lidar_motion, dtype=np.float64)[:3, :3]
             R = R_scan if R is None else R_scan @ R
         return R
+
+
+def fold_rectification(frame: CalibrationFrame) -> CalibrationFrame:
+    """The frame with its camera's rectification rotation (``CameraModel.R_rect``, a rectified stereo
+    image) moved into ``T_camera_camera0``, for the objective's kernels, which take intrinsics only; the
+    frame itself when the camera has none. The extrinsic estimated stays that of the camera's tf frame."""
+    R = frame.camera.R_rect
+    if R is None:
+        return frame
+    T_rect_camera = np.eye(4)
+    T_rect_camera[:3, :3] = R
+    return replace(frame, camera=frame.camera.without_rectification(),
+                   T_camera_camera0=T_rect_camera @ np.asarray(frame.T_camera_camera0, dtype=np.float64))
 
 
 def compensate_ego_motion(points_xyz: NDArray[np.floating], T_lidar_motion: Mat4 | None = None,

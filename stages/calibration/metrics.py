@@ -41,7 +41,14 @@ class MetricBatch:
 
 
 def camera_params(camera: CameraModel) -> NDArray[np.float64]:
-    """Pack a CameraModel into the (16,) float64 layout the kernels read (see ``metric_kernels``)."""
+    """Pack a CameraModel into the (16,) float64 layout the kernels read (see ``metric_kernels``).
+
+    Raises:
+        ProcessingError: the camera has a rectification rotation, which the kernels do not apply (fold
+            it into the pose first: ``stages.calibration.frame.fold_rectification``).
+    """
+    if camera.R_rect is not None:
+        raise ProcessingError("camera has a rectification rotation R: fold it into the pose before scoring")
     cam = np.zeros(mk.CAM_PARAMS)
     cam[0] = mk.MODEL_CODES[camera.distortion_model]
     cam[1:6] = (camera.fx, camera.fy, camera.cx, camera.cy, camera.K[0, 1])

@@ -15,7 +15,13 @@ from pipeline.camera_model import CameraModel
 from pipeline.errors import ProcessingError
 from pipeline.transforms import apply
 from stages.calibration.config import CalibrationConfig
-from stages.calibration.frame import CalibrationFrame, Mat4, compensate_ego_motion, default_blur_sigma_px
+from stages.calibration.frame import (
+    CalibrationFrame,
+    Mat4,
+    compensate_ego_motion,
+    default_blur_sigma_px,
+    fold_rectification,
+)
 from stages.calibration.metrics import (
     GomScorer,
     GradientPlanes,
@@ -114,6 +120,7 @@ class CalibrationProblem:
         centre = [0.0] * 6 + ([1.0] if config.estimate_focal else [])
         self.lower = np.asarray(centre) - np.asarray(half)
         self.upper = np.asarray(centre) + np.asarray(half)
+        frames = [fold_rectification(f) for f in frames]
         self.frames = frames
         self.T_camera_camera0 = [np.asarray(f.T_camera_camera0, dtype=np.float64) for f in frames]
         self.scorers: list[list[Scorer]] = []  # per frame: one per feature channel, then any ring-smoothed twins

@@ -292,7 +292,7 @@ def compressed_image(
 
 
 def camera_info(stamp_ns: int, frame_id: str, camera: CameraModel, profile: Profile = "ros2") -> Any:
-    """``sensor_msgs/msg/CameraInfo`` of a camera model (R identity, P = [K | 0]).
+    """``sensor_msgs/msg/CameraInfo`` of a camera model (R its ``R_rect`` or the identity, P = [K | 0]).
 
     ``none`` is written as ``plumb_bob`` with zero coefficients; ``cylindrical`` is written by name
     (not a ROS model; only fleetcal reads it back).
@@ -306,7 +306,7 @@ def camera_info(stamp_ns: int, frame_id: str, camera: CameraModel, profile: Prof
     arrays = {
         "d": np.asarray(D, dtype=np.float64).copy(),
         "k": camera.K.reshape(-1).astype(np.float64),
-        "r": np.eye(3).reshape(-1),
+        "r": (np.eye(3) if camera.R_rect is None else camera.R_rect).reshape(-1).astype(np.float64),
         "p": P.reshape(-1),
     }
     if profile == "ros1":
