@@ -18,6 +18,7 @@ from readers.decode import (
     decode_image,
     decode_pointcloud2,
     rectification_rotation,
+    stereo_baseline_m,
 )
 from readers.decode.tf import decode_transform
 
@@ -102,7 +103,7 @@ class CameraInfoTracker:
         self.rectified = rectified
         self.model: CameraModel | None = None
         self._failed = False
-        self._told_rotation = False
+        self._told_stereo = False
         if info_topic is not None:
             first = next(iter(reader.messages(topics=[info_topic])), None)
             if first is not None:
@@ -119,12 +120,18 @@ class CameraInfoTracker:
         try:
             msg = reader.deserialize(raw)
             self.model = decode_camera_info(msg, rectified=self.rectified)
-            if self.rectified and not self._told_rotation:
+            if self.rectified and not self._told_stereo:
+                self._told_stereo = True  # the first decoded CameraInfo tells; the rig does not change
                 angle_deg = rectification_rotation(msg)
                 if angle_deg > 0.01:
                     log.info("%s: rectified images turned by a rectification rotation R of %.2f deg "
                              "(stereo); points are turned by R before projecting", raw.topic, angle_deg)
-                    self._told_rotation = True
+                baseline_m = stereo_baseline_m(msg)
+                if baseline_m != 0.0:
+                    frame_id = getattr(getattr(msg, "header", None), "frame_id", "")
+                    log.warning("%s: P holds a stereo baseline of %.3f m, not applied: the images are taken "
+                                "to be in %r as this camera's own frame (if it is the left camera's, the "
+                                "extrinsic found is off by the baseline)", raw.topic, baseline_m, frame_id)
         except DecodeError as err:
             if not self._failed:
                 log.warning("ignoring CameraInfo on %s: %s", raw.topic, err)

@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 from pipeline.camera_model import CameraModel
 from pipeline.errors import DecodeError, TransformError
 from pipeline.transforms import from_xyz_rpy, rotation_error_deg, translation_error_m
-from readers.decode import decode_camera_info, decode_tf, rectification_rotation
+from readers.decode import decode_camera_info, decode_tf, rectification_rotation, stereo_baseline_m
 from readers.frames import is_rectified_topic, iter_camera_frames
 from readers.open import open_log
 from stages.sinks import ros_messages as rm
@@ -333,3 +333,27 @@ def test_stereo_rectification_rotation_is_told_once(tmp_path: Path, caplog: pyte
     assert all(f.camera is not None and f.camera.R_rect is not None for f in frames)
     told = [r.getMessage() for r in caplog.records if "rectification rotation" in r.getMessage()]
     assert len(told) == 1 and "1.50 deg" in told[0]
+    assert not any("baseline" in r.getMessage() for r in caplog.records)  # a left camera: P[0, 3] = 0
+
+
+def test_stereo_right_camera_baseline_is_warned_once_and_not_applied(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    msg, K_rect = _info_with_new_camera_matrix()
+    P = np.zeros((3, 4))
+    P[:, :3] = K_rect
+    P[0, 3] = -K_rect[0, 0] * 0.12  # right camera, 12 cm baseline
+    msg = dataclasses.replace(msg, p=P.reshape(-1))
+    assert stereo_baseline_m(msg) == pytest.approx(0.12)
+    path = tmp_path / "right.mcap"
+    with LogWriter(path, "mcap") as writer:
+        for t in (1, 3, 5):
+            writer.write("/right/camera_info", "sensor_msgs/msg/CameraInfo", t, msg)
+            writer.write("/right/image_rect", "sensor_msgs/msg/Image", t + 1,
+                         rm.image(t + 1, "right_optical", np.zeros((480, 640), np.uint8), "mono8"))
+    with open_log(path) as reader, caplog.at_level(logging.WARNING):
+        frames = list(iter_camera_frames(reader, "/right/image_rect"))
+    warned = [r.getMessage() for r in caplog.records if "baseline" in r.getMessage()]
+    assert len(frames) == 3 and len(warned) == 1 and "0.120 m" in warned[0]
+    points = np.array([[0.5, -0.2, 8.0]])
+    uv, _ = frames[0].camera.project(points)  # the baseline column is not in the projection
+    np.testing.assert_allclose(uv[0], K_rect[:2, :2] @ (points[0, :2] / 8.0) + K_rect[:2, 2], atol=1e-9)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from readers.decode.camera_info import decode_camera_info, rectification_rotation
+from readers.decode.camera_info import decode_camera_info, rectification_rotation, stereo_baseline_m
 from readers.decode.common import stamp_to_ns
 from readers.decode.image import SUPPORTED_ENCODINGS, decode_compressed_image, decode_image
 from readers.decode.pointcloud2 import decode_pointcloud2
@@ -18,4 +18,5 @@ __all__ = [
     "decode_transform",
     "rectification_rotation",
     "stamp_to_ns",
+    "stereo_baseline_m",
 ]

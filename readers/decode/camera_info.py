@@ -66,3 +66,12 @@ def rectification_rotation(msg: Any) -> float:
         return 0.0
     cos_angle = np.clip((np.trace(R.reshape(3, 3)) - 1.0) / 2.0, -1.0, 1.0)
     return float(np.degrees(np.arccos(cos_angle)))
+
+
+def stereo_baseline_m(msg: Any) -> float:
+    """Baseline B (metres) of a stereo right camera from its CameraInfo's P (``Tx = -fx' B``); 0 for a
+    left or monocular camera (or P unset)."""
+    P = _array(msg, "p")
+    if P.size != 12 or not np.all(np.isfinite(P)) or P[0] <= 0:
+        return 0.0
+    return float(-P[3] / P[0])
