@@ -32,7 +32,8 @@ def decode_transform(stamped: Any) -> tuple[int, str, str, NDArray[np.float64]]:
     quat = np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
     if not (np.all(np.isfinite(translation)) and np.all(np.isfinite(quat))):
         raise TransformError(f"transform {parent} -> {child} has NaN or infinite values")
-    norm = float(np.linalg.norm(quat))
+    with np.errstate(over="ignore"):  # a huge (corrupt) quaternion overflows to inf and is rejected below
+        norm = float(np.linalg.norm(quat))
     low, high = QUAT_NORM_RANGE
     if not low < norm < high:
         raise TransformError(
