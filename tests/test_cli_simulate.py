@@ -253,6 +253,7 @@ def test_truth_schema_matches_shared_data(shared_data: Path, tmp_path: Path) -> 
         (["--image-size", "big"], "--image-size"),
         (["--max-range", "0"], "--max-range"),
         (["--fisheye", "--panorama"], "--panorama"),
+        (["--panorama", "--rectified"], "--rectified"),
     ],
 )
 def test_cli_nonsense_arguments_get_one_line_error(

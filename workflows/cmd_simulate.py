@@ -111,6 +111,9 @@ def add_simulation_arguments(parser: argparse.ArgumentParser, frames: int, size:
     lens.add_argument("--fisheye", action="store_true", help="equidistant fisheye cameras instead of pinhole")
     lens.add_argument("--panorama", action="store_true",
                       help="cylindrical 360 deg panoramas (the GOM paper's Ladybug model) instead of pinhole")
+    lens.add_argument("--rectified", action="store_true",
+                      help="rectified stereo images on /camera_N/image_rect (no distortion, a 1.5 deg R in the "
+                           "CameraInfo) instead of raw pinhole")
     parser.add_argument(
         "--compressed",
         action="store_true",
@@ -163,6 +166,7 @@ def options_from_args(args: argparse.Namespace) -> SimulationOptions:
         cameras=args.cameras,
         fisheye=args.fisheye,
         panorama=args.panorama,
+        rectified=args.rectified,
         compressed=args.compressed,
         organized=args.organized,
         speed_m_s=args.speed,

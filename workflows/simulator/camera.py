@@ -13,6 +13,7 @@ from functools import cache
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 from scipy.special import ndtri
 
 from pipeline.camera_model import CameraModel
@@ -30,6 +31,15 @@ def pinhole_camera(width: int, height: int) -> CameraModel:
     f = 0.55 * width
     K = np.array([[f, 0.0, width / 2 - 0.5 + 3.2], [0.0, f, height / 2 - 0.5 - 2.1], [0.0, 0.0, 1.0]])
     return CameraModel(width, height, K, np.array([-0.08, 0.02, 0.0004, -0.0003, 0.0]), "plumb_bob")
+
+
+def rectified_stereo_camera(width: int, height: int) -> CameraModel:
+    """One camera of a rectified stereo pair (``image_rect``): the pinhole's intrinsics, no distortion, and
+    images taken in a frame turned 1.5 deg from the camera's own (its CameraInfo's rectification
+    rotation R, as a stereo calibration writes it)."""
+    axis = np.array([0.3, 1.0, 0.2]) / np.linalg.norm([0.3, 1.0, 0.2])
+    R_rect = Rotation.from_rotvec(np.radians(1.5) * axis).as_matrix()
+    return CameraModel(width, height, pinhole_camera(width, height).K, np.zeros(0), "none", R_rect)
 
 
 def fisheye_camera(width: int, height: int) -> CameraModel:
@@ -75,7 +85,8 @@ class SimCamera:
         """(H*W, 3) unit rays of the pixel centres (optical frame) and which pixels see the scene."""
         if self._rays_cam is None or self._ray_ok is None:
             m = self.model
-            key = (m.width, m.height, m.distortion_model, m.K.tobytes(), m.D.tobytes())
+            R = b"" if m.R_rect is None else m.R_rect.tobytes()
+            key = (m.width, m.height, m.distortion_model, m.K.tobytes(), m.D.tobytes(), R)
             self._rays_cam, self._ray_ok = _pixel_rays(key, m)
             return self._rays_cam, self._ray_ok
         return self._rays_cam, self._ray_ok

@@ -36,9 +36,9 @@ def camera_frame(index: int) -> str:
     return f"camera_{index}_optical"
 
 
-def camera_topics(index: int, compressed: bool) -> tuple[str, str]:
-    """(image topic, camera_info topic) of camera ``index``."""
-    image = f"/camera_{index}/image_raw" + ("/compressed" if compressed else "")
+def camera_topics(index: int, compressed: bool, rectified: bool = False) -> tuple[str, str]:
+    """(image topic, camera_info topic) of camera ``index`` (``image_rect`` for rectified images)."""
+    image = f"/camera_{index}/{'image_rect' if rectified else 'image_raw'}" + ("/compressed" if compressed else "")
     return image, f"/camera_{index}/camera_info"
 
 
@@ -115,13 +115,14 @@ def build_truth(
     seed: int,
     fmt: str,
     extra: dict[str, Any] | None = None,
+    rectified: bool = False,
 ) -> dict[str, Any]:
     """The truth document (JSON-ready: lists, ints, floats)."""
     pairs = []
     for i, (T_true, T_log) in enumerate(zip(rig.T_camera_lidar, rig.T_camera_lidar_in_log, strict=True)):
         pairs.append(
             {
-                "camera_topic": camera_topics(i, compressed)[0],
+                "camera_topic": camera_topics(i, compressed, rectified)[0],
                 "camera_frame": camera_frame(i),
                 "T_camera_lidar": T_true.tolist(),
                 "T_camera_lidar_in_log": T_log.tolist(),

@@ -25,7 +25,14 @@ from pipeline.progress import Progress
 from pipeline.transforms import invert
 from stages.sinks import ros_messages as rm
 from stages.sinks.log_writer import LogWriter
-from workflows.simulator.camera import SimCamera, fisheye_camera, panorama_camera, pinhole_camera, render
+from workflows.simulator.camera import (
+    SimCamera,
+    fisheye_camera,
+    panorama_camera,
+    pinhole_camera,
+    rectified_stereo_camera,
+    render,
+)
 from workflows.simulator.lidar import SUPPORTED_BEAMS, LidarModel, LidarScan, simulate_scan
 from workflows.simulator.motion import LoopMotion
 from workflows.simulator.raycast import build_grid
@@ -71,6 +78,7 @@ class SimulationOptions:
     cameras: int = 1
     fisheye: bool = False
     panorama: bool = False
+    rectified: bool = False
     compressed: bool = False
     organized: bool = False
     speed_m_s: float | None = None
@@ -87,7 +95,8 @@ class SimulationOptions:
     def validate(self) -> None:
         """Raise ConfigError with a one-line message for any nonsense value."""
         checks = [
-            (not (self.fisheye and self.panorama), "choose one of fisheye and panorama cameras"),
+            (self.fisheye + self.panorama + self.rectified <= 1,
+             "choose one of fisheye, panorama and rectified cameras"),
             (
                 self.fmt in ("mcap", "ros1", "ros2"),
                 f"unknown format {self.fmt!r} (choose from mcap, ros1, ros2)",
@@ -189,7 +198,8 @@ def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet:
         max_range_m=opts.max_range_m,
         seed=opts.seed,
     )
-    make_model = fisheye_camera if opts.fisheye else panorama_camera if opts.panorama else pinhole_camera
+    make_model = (fisheye_camera if opts.fisheye else panorama_camera if opts.panorama
+                  else rectified_stereo_camera if opts.rectified else pinhole_camera)
     cameras = [
         SimCamera(make_model(opts.width, opts.height), spectral_mix=min(0.15 * i, 0.6)) for i in range(opts.cameras)
     ]
@@ -292,7 +302,7 @@ def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet:
                 stamp = images[index][sub]
                 cam = cameras[index]
                 img = next_image(index, sub)
-                image_topic, info_topic = camera_topics(index, opts.compressed)
+                image_topic, info_topic = camera_topics(index, opts.compressed, opts.rectified)
                 frame = camera_frame(index)
                 writer.write(
                     info_topic,
@@ -329,8 +339,8 @@ def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet:
         },
         "cameras": [
             {
-                "camera_topic": camera_topics(i, opts.compressed)[0],
-                "camera_info_topic": camera_topics(i, opts.compressed)[1],
+                "camera_topic": camera_topics(i, opts.compressed, opts.rectified)[0],
+                "camera_info_topic": camera_topics(i, opts.compressed, opts.rectified)[1],
                 "phase_ms": phases_ms[i],
                 "model": cameras[i].model.distortion_model,
                 "spectral_mix": cameras[i].spectral_mix,
@@ -346,6 +356,7 @@ def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet:
     truth = build_truth(
         rig=rig,
         compressed=opts.compressed,
+        rectified=opts.rectified,
         scan_stamps_ns=scans,
         T_map_lidar=T_map_lidar,
         scene=opts.scene,
@@ -368,5 +379,5 @@ def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet:
         distance_m=opts.speed * duration_s,
         runtime_s=time.monotonic() - started,
         lidar_topic=LIDAR_TOPIC,
-        camera_topics=[camera_topics(i, opts.compressed)[0] for i in range(opts.cameras)],
+        camera_topics=[camera_topics(i, opts.compressed, opts.rectified)[0] for i in range(opts.cameras)],
     )
