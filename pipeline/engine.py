@@ -90,6 +90,25 @@ class BatchResult:
     worker_cpu_s: float = 0.0
 
 
+def local_cluster(n_workers: int, memory_limit: str | float | None = None) -> Any:
+    """A ``distributed.LocalCluster`` of ``n_workers`` single-threaded worker processes on this machine,
+    without a dashboard. The scheduler's HTTP server (health and metrics) listens on a free localhost
+    port, not on 8787 of every interface: jobs running side by side neither clash ("port 8787 is
+    already in use") nor expose a server."""
+    from distributed import LocalCluster
+
+    return LocalCluster(
+        n_workers=n_workers,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address=None,
+        scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
+        silence_logs=logging.ERROR,
+        memory_limit=memory_limit,
+    )
+
+
 @dataclass
 class EngineStats:
     """Counters of the last ``Engine.map_frames`` run.
@@ -390,7 +409,7 @@ class Engine:
         return self._max_in_flight or 2 * self.n_workers() + 1
 
     def _start(self) -> None:
-        from distributed import Client, LocalCluster
+        from distributed import Client
 
         if self.scheduler is not None:
             try:
@@ -399,14 +418,7 @@ class Engine:
                 raise ConfigError(f"cannot connect to the dask scheduler at {self.scheduler}: {err}") from err
         else:
             n = self.workers if self.workers is not None else (os.cpu_count() or 1)
-            self._cluster = LocalCluster(
-                n_workers=n,
-                threads_per_worker=1,
-                processes=True,
-                dashboard_address=None,
-                silence_logs=logging.ERROR,
-                memory_limit=self.memory_limit,
-            )
+            self._cluster = local_cluster(n, self.memory_limit)
             self._client = Client(self._cluster)
         if self.warmups:
             self._client.register_plugin(NumbaWarmup(self.warmups), name=NumbaWarmup.name)

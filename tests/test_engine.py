@@ -342,3 +342,24 @@ def test_tasks_carry_no_frames_and_early_stop_cancels(log_path: Path, dask_engin
         time.sleep(0.05)
     assert not dask_engine.client.futures
     assert len(list(dask_engine.map_frames(log_path, LIDAR, range_stage, batch_size=20))) == N_LIDAR - 2
+
+
+def test_local_cluster_serves_no_dashboard_on_port_8787() -> None:
+    """Two fleetcal jobs side by side: with 8787 taken, the local cluster starts without dask's "port in
+    use" warning, and its scheduler's HTTP server listens on another port of localhost only."""
+    import warnings
+
+    with socket.socket() as taken:
+        try:
+            taken.bind(("127.0.0.1", 8787))
+        except OSError:
+            pytest.skip("port 8787 is in use here")
+        taken.listen()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            with Engine(workers=1, quiet=True) as engine:
+                engine.client.wait_for_workers(1, timeout=60)
+                info = engine.client.scheduler_info()
+    assert not [w for w in caught if "8787" in str(w.message)]
+    assert info["address"].startswith("tcp://127.0.0.1:")
+    assert all(port != 8787 for port in info["services"].values())

@@ -511,7 +511,9 @@ def _run_on_dask(
     progress: Progress,
 ) -> None:
     """One task per log on a dask cluster; ``record`` is called as each finishes (any order)."""
-    from distributed import Client, LocalCluster, as_completed
+    from distributed import Client, as_completed
+
+    from pipeline.engine import local_cluster
 
     cluster = None
     if scheduler is not None:
@@ -521,13 +523,7 @@ def _run_on_dask(
             raise ConfigError(f"cannot connect to the dask scheduler at {scheduler}: {err}") from err
     else:
         n = workers if workers is not None else (os.cpu_count() or 1)
-        cluster = LocalCluster(
-            n_workers=max(1, min(n, len(jobs))),
-            threads_per_worker=1,
-            processes=True,
-            dashboard_address=":0",
-            silence_logs=logging.ERROR,
-        )
+        cluster = local_cluster(max(1, min(n, len(jobs))), memory_limit="auto")
         client = Client(cluster)
     try:
         token = uuid.uuid4().hex[:8]
