@@ -90,14 +90,24 @@ class BatchResult:
     worker_cpu_s: float = 0.0
 
 
-def local_cluster(n_workers: int, memory_limit: str | float | None = None) -> Any:
-    """A ``distributed.LocalCluster`` of ``n_workers`` single-threaded worker processes on this machine,
-    without a dashboard. The scheduler's HTTP server (health and metrics) listens on a free localhost
-    port, not on 8787 of every interface: jobs running side by side neither clash ("port 8787 is
-    already in use") nor expose a server."""
-    from distributed import LocalCluster
+def dask_client(scheduler: str | None, n_workers: int, memory_limit: str | float | None = "auto") -> tuple[Any, Any]:
+    """(client, local cluster or None): a client of the scheduler at ``scheduler`` (``tcp://HOST:PORT``),
+    or, without one, of a new ``LocalCluster`` of ``n_workers`` single-threaded worker processes on this
+    machine. The local cluster has no dashboard, and its scheduler's HTTP server (health and metrics)
+    listens on a free localhost port, not on 8787 of every interface: jobs running side by side neither
+    clash ("port 8787 is already in use") nor expose a server.
 
-    return LocalCluster(
+    Raises:
+        ConfigError: the scheduler cannot be reached.
+    """
+    from distributed import Client, LocalCluster
+
+    if scheduler is not None:
+        try:
+            return Client(scheduler, timeout="10s"), None
+        except (OSError, TimeoutError) as err:
+            raise ConfigError(f"cannot connect to the dask scheduler at {scheduler}: {err}") from err
+    cluster = LocalCluster(
         n_workers=n_workers,
         threads_per_worker=1,
         processes=True,
@@ -107,6 +117,7 @@ def local_cluster(n_workers: int, memory_limit: str | float | None = None) -> An
         silence_logs=logging.ERROR,
         memory_limit=memory_limit,
     )
+    return Client(cluster), cluster
 
 
 @dataclass
@@ -409,17 +420,8 @@ class Engine:
         return self._max_in_flight or 2 * self.n_workers() + 1
 
     def _start(self) -> None:
-        from distributed import Client
-
-        if self.scheduler is not None:
-            try:
-                self._client = Client(self.scheduler, timeout="10s")
-            except (OSError, TimeoutError) as err:
-                raise ConfigError(f"cannot connect to the dask scheduler at {self.scheduler}: {err}") from err
-        else:
-            n = self.workers if self.workers is not None else (os.cpu_count() or 1)
-            self._cluster = local_cluster(n, self.memory_limit)
-            self._client = Client(self._cluster)
+        n = self.workers if self.workers is not None else (os.cpu_count() or 1)
+        self._client, self._cluster = dask_client(self.scheduler, n, self.memory_limit)
         if self.warmups:
             self._client.register_plugin(NumbaWarmup(self.warmups), name=NumbaWarmup.name)
 

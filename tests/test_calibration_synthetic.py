@@ -245,7 +245,7 @@ def test_start_outside_the_search_box_is_suspect(frame: CalibrationFrame) -> Non
 def test_overlap_limit_is_reported_where_a_frame_projects_no_more_than_its_minimum(
         frame: CalibrationFrame) -> None:
     """At the initial guess a frame projects its own reference count: with the limit at 99 % of it the
-    frame is on the limit (within 2 %), with the default half of it it is not."""
+    frame is on the limit (within 2 %), with the default (0.3 of it) it is not."""
     T_true = true_T_camera_lidar()
     tight = CalibrationProblem([frame], T_true, CalibrationConfig(search_deg=2.0, search_m=0.2,
                                                                    min_overlap_fraction=0.99))

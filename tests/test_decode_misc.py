@@ -237,7 +237,7 @@ def test_rectified_images_project_like_opencv_rectification(profile: Profile, st
     assert raw.R_rect is None and (rect.R_rect is not None) == stereo
     rng = np.random.default_rng(0)
     depth = rng.uniform(4, 20, 200)
-    points = np.column_stack([depth * rng.uniform(-0.3, 0.3, 200), depth * rng.uniform(-0.2, 0.2, 200), depth])
+    points = np.column_stack([depth * rng.uniform(-0.4, 0.4, 200), depth * rng.uniform(-0.3, 0.3, 200), depth])
     uv_raw, ok_raw = raw.project(points)
     uv_rect, ok_rect = rect.project(points)
     assert ok_raw.all() and ok_rect.all()

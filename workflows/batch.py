@@ -511,20 +511,12 @@ def _run_on_dask(
     progress: Progress,
 ) -> None:
     """One task per log on a dask cluster; ``record`` is called as each finishes (any order)."""
-    from distributed import Client, as_completed
+    from distributed import as_completed
 
-    from pipeline.engine import local_cluster
+    from pipeline.engine import dask_client
 
-    cluster = None
-    if scheduler is not None:
-        try:
-            client = Client(scheduler, timeout="10s")
-        except (OSError, TimeoutError) as err:
-            raise ConfigError(f"cannot connect to the dask scheduler at {scheduler}: {err}") from err
-    else:
-        n = workers if workers is not None else (os.cpu_count() or 1)
-        cluster = local_cluster(max(1, min(n, len(jobs))), memory_limit="auto")
-        client = Client(cluster)
+    n = workers if workers is not None else (os.cpu_count() or 1)
+    client, cluster = dask_client(scheduler, max(1, min(n, len(jobs))))
     try:
         token = uuid.uuid4().hex[:8]
         futures = {
