@@ -30,24 +30,39 @@ __all__ = [
 
 @dataclass
 class ImageGradients:
-    """Gradients of one image, all (H, W) float32.
+    """Gradients of one image: one (H, W, 2) float32 array, the rest views or computed on demand.
 
     Attributes:
-        gx, gy: 3x3 Sobel derivative along columns (x) and rows (y), in equalised 8-bit grey levels
-            (Sobel weights unnormalised, so a step of 1 grey level gives 4).
-        magnitude: ``hypot(gx, gy)``.
-        orientation: ``atan2(gy, gx)``, radians in (-pi, pi]; 0 where the magnitude is 0.
-    All four are 0 on the 1-pixel image border and outside the (eroded) valid mask.
+        gxy: (H, W, 2) 3x3 Sobel derivative along columns (x, channel 0) and rows (y, channel 1), in
+            equalised 8-bit grey levels (Sobel weights unnormalised, so a step of 1 grey level gives 4).
+            Interleaved as the GOM kernel reads it, so the objective shares it without a copy.
+    ``gx``, ``gy`` (views), ``magnitude`` (``hypot(gx, gy)``) and ``orientation`` (``atan2(gy, gx)``,
+    radians in (-pi, pi], 0 where the magnitude is 0) are (H, W) float32; the last two are computed
+    on each access, so a frame holds 8 bytes per pixel, not 16. All are 0 on the 1-pixel image border
+    and outside the (eroded) valid mask.
     """
 
-    gx: NDArray[np.float32]
-    gy: NDArray[np.float32]
-    magnitude: NDArray[np.float32]
-    orientation: NDArray[np.float32]
+    gxy: NDArray[np.float32]
+
+    @property
+    def gx(self) -> NDArray[np.float32]:
+        return self.gxy[:, :, 0]
+
+    @property
+    def gy(self) -> NDArray[np.float32]:
+        return self.gxy[:, :, 1]
+
+    @property
+    def magnitude(self) -> NDArray[np.float32]:
+        return np.hypot(self.gx, self.gy)
+
+    @property
+    def orientation(self) -> NDArray[np.float32]:
+        return np.arctan2(self.gy, self.gx)
 
     @property
     def shape(self) -> tuple[int, int]:
-        return (int(self.gx.shape[0]), int(self.gx.shape[1]))
+        return (int(self.gxy.shape[0]), int(self.gxy.shape[1]))
 
 
 def to_grey_u8(image: NDArray[np.generic]) -> NDArray[np.uint8]:
@@ -100,24 +115,22 @@ def compute_image_gradients(
         raise InputError(f"blur_sigma_px must be a finite number >= 0, got {blur_sigma_px}")
     valid_u8 = _valid_mask(mask, grey.shape)
     if int(grey.min()) == int(grey.max()):
-        zeros = np.zeros(grey.shape, np.float32)
-        return ImageGradients(gx=zeros, gy=zeros.copy(), magnitude=zeros.copy(), orientation=zeros.copy())
+        return ImageGradients(np.zeros((height, width, 2), np.float32))
     if equalize:
         grey = _equalize(grey, valid_u8)
     grey_f: NDArray[np.float32] = grey.astype(np.float32)
     if blur_sigma_px > 0:
         sigma = float(blur_sigma_px)
         grey_f = np.asarray(cv2.GaussianBlur(grey_f, (0, 0), sigmaX=sigma, sigmaY=sigma), dtype=np.float32)
-    gx = np.asarray(cv2.Sobel(grey_f, cv2.CV_32F, 1, 0, ksize=3), dtype=np.float32)
-    gy = np.asarray(cv2.Sobel(grey_f, cv2.CV_32F, 0, 1, ksize=3), dtype=np.float32)
-    magnitude = np.empty_like(gx)
+    gxy = np.empty((height, width, 2), np.float32)
+    gxy[:, :, 0] = cv2.Sobel(grey_f, cv2.CV_32F, 1, 0, ksize=3)
+    gxy[:, :, 1] = cv2.Sobel(grey_f, cv2.CV_32F, 0, 1, ksize=3)
     if valid_u8 is None:
-        image_kernels.gradient_magnitude(gx, gy, np.empty((0, 0), np.uint8), False, magnitude)
+        image_kernels.zero_border_and_invalid(gxy, np.empty((0, 0), np.uint8), False)
     else:
         eroded = cv2.erode(valid_u8, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)
-        image_kernels.gradient_magnitude(gx, gy, eroded, True, magnitude)
-    orientation = np.arctan2(gy, gx).astype(np.float32, copy=False)
-    return ImageGradients(gx=gx, gy=gy, magnitude=magnitude, orientation=orientation)
+        image_kernels.zero_border_and_invalid(gxy, eroded, True)
+    return ImageGradients(gxy)
 
 
 def undistort_image(

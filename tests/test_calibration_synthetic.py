@@ -258,7 +258,7 @@ def test_overlap_limit_is_reported_where_a_frame_projects_no_more_than_its_minim
 def test_image_without_structure_is_suspect(frame: CalibrationFrame) -> None:
     """Random image gradients: GOM stays near chance (0.5) and the optimum is flat."""
     rng = np.random.default_rng(0)
-    noise = ImageGradients(*(rng.standard_normal((480, 640)).astype(np.float32) for _ in range(4)))
+    noise = ImageGradients(rng.standard_normal((480, 640, 2)).astype(np.float32))
     cfg = CalibrationConfig(search_deg=2.0, search_m=0.2, n_particles=40, max_iterations=30)
     result = calibrate([dataclasses.replace(frame, gradients=noise)], true_T_camera_lidar(), cfg)
     assert result.verdict == "suspect"

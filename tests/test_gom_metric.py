@@ -126,15 +126,16 @@ def test_gom_kernel_matches_numpy_reference(model: str) -> None:
     pts = random_points(800, seed=4)
     lgx, lgy, lmag = rng.standard_normal(800), rng.standard_normal(800), rng.random(800)
     shape = (camera.height, camera.width)
-    igx = np.asarray(cv2.GaussianBlur(rng.standard_normal(shape), (0, 0), 2.0), dtype=np.float64)
-    igy = np.asarray(cv2.GaussianBlur(rng.standard_normal(shape), (0, 0), 2.0), dtype=np.float64)
+    # float32, as Sobel gives them and the scorer keeps them: the reference then sees the same values
+    igx = np.asarray(cv2.GaussianBlur(rng.standard_normal(shape), (0, 0), 2.0), dtype=np.float32)
+    igy = np.asarray(cv2.GaussianBlur(rng.standard_normal(shape), (0, 0), 2.0), dtype=np.float32)
     scorer = GomScorer(pts, lgx, lgy, lmag, GradientPlanes.of(igx, igy, camera), camera)
     poses = np.stack([np.eye(4), from_xyz_rpy(0.1, -0.05, 0.2, 3, -2, 10), from_xyz_rpy(0, 0, 0, 0, 90, 0)])
     batch = scorer.score(poses)
     for k, T in enumerate(poses):
         ref, n = gom_numpy(pts, lgx, lgy, lmag, igx, igy, camera, T)
         assert batch.counts[k] == n
-        assert batch.scores[k] == pytest.approx(ref, abs=1e-9)
+        assert batch.scores[k] == pytest.approx(ref, abs=1e-6)  # float32 taps: about 1e-8 off
     # aligned gradients score 1, perpendicular 0, uncorrelated about 0.5
     uv, valid = camera.project(pts)
     inside = valid & (uv[:, 0] <= camera.width - 1) & (uv[:, 1] <= camera.height - 1)
@@ -210,7 +211,7 @@ def test_nmi_and_levinson_match_numpy_reference() -> None:
     rng = np.random.default_rng(5)
     pts = random_points(3000, seed=6)
     values = rng.random(3000)
-    intensity = np.clip(cv2.GaussianBlur(rng.random((480, 640)), (0, 0), 3.0) * 2 - 0.5, 0, 1)
+    intensity = np.clip(cv2.GaussianBlur(rng.random((480, 640)), (0, 0), 3.0) * 2 - 0.5, 0, 1).astype(np.float32)
     T = from_xyz_rpy(0.05, 0, 0, 1, 2, -1)
     uv, valid = camera.project(apply(T, pts))
     valid &= (uv[:, 0] <= 639) & (uv[:, 1] <= 479)
@@ -229,6 +230,10 @@ def test_nmi_and_levinson_match_numpy_reference() -> None:
     nmi = NmiScorer(pts, values, intensity, camera, bins=bins).score(T)
     assert nmi.scores[0] == pytest.approx(nmi_ref, rel=1e-9)
     assert 1.0 <= nmi.scores[0] <= 2.0
+    grey_u8 = np.rint(intensity * 255).astype(np.uint8)  # build_frame keeps the equalised grey as 8 bits
+    as_u8 = NmiScorer(pts, values, grey_u8, camera, bins=bins).score(T).scores[0]
+    assert as_u8 == NmiScorer(pts, values, grey_u8 / np.float32(255), camera, bins=bins).score(T).scores[0]
+    assert as_u8 == pytest.approx(nmi_ref, rel=0.02)
     lev = LevinsonScorer(pts, values, intensity, camera).score(T)
     assert lev.scores[0] == pytest.approx(np.sum(values[valid] * sampled) / values.sum(), rel=1e-9)
 

@@ -13,6 +13,7 @@ from pipeline.errors import InputError
 from pipeline.frames import CameraFrame
 from stages import image_kernels
 from stages.image_gradients import (
+    ImageGradients,
     camera_frame_gradients,
     compute_image_gradients,
     to_grey_u8,
@@ -20,8 +21,8 @@ from stages.image_gradients import (
 )
 
 
-def reference_magnitude(gx: np.ndarray, gy: np.ndarray, valid: np.ndarray | None) -> tuple[np.ndarray, ...]:
-    """Slow reference of ``image_kernels.gradient_magnitude``: zero border/invalid, then hypot."""
+def reference_zeroed(gx: np.ndarray, gy: np.ndarray, valid: np.ndarray | None) -> tuple[np.ndarray, ...]:
+    """Slow reference of ``image_kernels.zero_border_and_invalid``: zero border/invalid; and hypot."""
     keep = np.zeros(gx.shape, dtype=bool)
     keep[1:-1, 1:-1] = True
     if valid is not None:
@@ -47,32 +48,28 @@ def reference_sobel(grey: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 @pytest.mark.parametrize("shape", [(3, 3), (7, 11), (64, 48)])
 @pytest.mark.parametrize("with_mask", [False, True])
-def test_magnitude_kernel_matches_reference(shape: tuple[int, int], with_mask: bool) -> None:
+def test_border_kernel_matches_reference(shape: tuple[int, int], with_mask: bool) -> None:
     rng = np.random.default_rng(sum(shape))
-    gx = rng.normal(scale=50, size=shape).astype(np.float32)
-    gy = rng.normal(scale=50, size=shape).astype(np.float32)
+    gxy = rng.normal(scale=50, size=(*shape, 2)).astype(np.float32)
     valid = (rng.random(shape) > 0.3).astype(np.uint8) if with_mask else None
-    gx_ref, gy_ref, mag_ref = reference_magnitude(gx, gy, valid)
-    mag = np.empty_like(gx)
-    image_kernels.gradient_magnitude(
-        gx, gy, valid if valid is not None else np.empty((0, 0), np.uint8), with_mask, mag
-    )
-    np.testing.assert_array_equal(gx, gx_ref)
-    np.testing.assert_array_equal(gy, gy_ref)
-    np.testing.assert_allclose(mag, mag_ref, rtol=1e-6, atol=1e-6)
+    gx_ref, gy_ref, mag_ref = reference_zeroed(gxy[:, :, 0], gxy[:, :, 1], valid)
+    image_kernels.zero_border_and_invalid(gxy, valid if valid is not None else np.empty((0, 0), np.uint8), with_mask)
+    grads = ImageGradients(gxy)
+    np.testing.assert_array_equal(grads.gx, gx_ref)
+    np.testing.assert_array_equal(grads.gy, gy_ref)
+    np.testing.assert_allclose(grads.magnitude, mag_ref, rtol=1e-6, atol=1e-6)
+    assert grads.magnitude.dtype == grads.orientation.dtype == np.float32
 
 
-def test_magnitude_kernel_constant_and_zero_inputs() -> None:
-    gx = np.full((5, 6), 3.0, np.float32)
-    gy = np.full((5, 6), 4.0, np.float32)
-    mag = np.empty_like(gx)
-    image_kernels.gradient_magnitude(gx, gy, np.empty((0, 0), np.uint8), False, mag)
+def test_border_kernel_constant_and_zero_inputs() -> None:
+    gxy = np.stack([np.full((5, 6), 3.0, np.float32), np.full((5, 6), 4.0, np.float32)], axis=2)
+    image_kernels.zero_border_and_invalid(gxy, np.empty((0, 0), np.uint8), False)
+    mag = ImageGradients(gxy).magnitude
     assert np.all(mag[1:-1, 1:-1] == 5.0)
     assert mag[0].sum() == mag[-1].sum() == mag[:, 0].sum() == mag[:, -1].sum() == 0.0
-    zeros = np.zeros((4, 4), np.float32)
-    image_kernels.gradient_magnitude(
-        zeros, zeros.copy(), np.empty((0, 0), np.uint8), False, mag[:4, :4].copy()
-    )
+    zeros = np.zeros((4, 4, 2), np.float32)
+    image_kernels.zero_border_and_invalid(zeros, np.empty((0, 0), np.uint8), False)
+    assert not ImageGradients(zeros).orientation.any()
 
 
 def test_sobel_matches_explicit_reference_on_random_image() -> None:

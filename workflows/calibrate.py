@@ -59,7 +59,7 @@ class PairCalibration:
     T_camera_lidar: Mat4
     T_camera_lidar_initial: Mat4
     frames: list[CalibrationFrame] = field(default_factory=list)
-    images: list[NDArray[Any]] = field(default_factory=list)
+    overlay_image: NDArray[Any] | None = None  # the first frame's raw image, for overlays (only that one is kept)
     lidar_stamps_ns: list[int] = field(default_factory=list)
     n_points: list[int] = field(default_factory=list)
     motion_compensated: bool = False
@@ -199,7 +199,7 @@ def make_frame(
 @dataclass
 class _Collected:
     frames: list[CalibrationFrame]
-    images: list[NDArray[Any]]
+    overlay_image: NDArray[Any] | None
     lidar_stamps: list[int]
     n_points: list[int]
     lidar_frame: str
@@ -218,7 +218,7 @@ def collect_frames(
     """Decode N pairs spread over the log and run the per-frame stages on them."""
     c = config.calibration
     stats = PairingStats()
-    out = _Collected([], [], [], [], "", "", False)
+    out = _Collected([], None, [], [], "", "", False)
     sparse = 0
     for lidar, camera in iter_pairs(
         reader, lidar_topic, camera_topic, config.io.pairing_tolerance_ns, max_pairs=c.frames, stats=stats
@@ -242,7 +242,8 @@ def collect_frames(
         if sweep is not None:
             frame = replace(frame, point_time_offsets_s=sweep[0], twist_lidar=sweep[1])
         out.frames.append(frame)
-        out.images.append(camera.image)
+        if out.overlay_image is None:
+            out.overlay_image = camera.image  # the objective keeps gradients only: no image per frame
         out.lidar_stamps.append(lidar.stamp_ns)
         out.n_points.append(lidar.n_points)
         if progress is not None:
@@ -318,7 +319,7 @@ def _pair(
 ) -> PairCalibration:
     return PairCalibration(
         lidar_topic, topic, col.lidar_frame, col.camera_frame, result, T_camera_lidar, T_init,
-        col.frames, col.images, col.lidar_stamps, col.n_points, col.compensated,
+        col.frames, col.overlay_image, col.lidar_stamps, col.n_points, col.compensated,
     )  # fmt: skip
 
 
@@ -415,10 +416,10 @@ def write_calibration(pairs: list[PairCalibration], config: Config, out_dir: Pat
     ]  # fmt: skip
     report_dir = out_dir / "report"
     for p in pairs:
-        if not p.frames:
+        if not p.frames or p.overlay_image is None:
             continue
         name = p.camera_topic.strip("/").replace("/", "_")
-        f, image = p.frames[0], p.images[0]
+        f, image = p.frames[0], p.overlay_image
         for label, T in (("before", p.T_camera_lidar_initial), ("after", p.T_camera_lidar)):
             points = f.points_at_camera_stamp()
             written.append(report.write_overlay(image, f.camera, apply(T, points),

@@ -219,10 +219,10 @@ def process_log(
         t0 = time.perf_counter()
         overlays: dict[str, list[tuple[int, bytes]]] = {}
         for p in pairs:
-            if p.frames:
+            if p.frames and p.overlay_image is not None:
                 f = p.frames[0]
                 pts = f.points_at_camera_stamp()
-                overlays[p.camera_topic] = [(f.stamp_ns, jpeg_overlay(p.images[0], f.camera,
+                overlays[p.camera_topic] = [(f.stamp_ns, jpeg_overlay(p.overlay_image, f.camera,
                                                                       apply(p.T_camera_lidar, pts)))]  # fmt: skip
         target = writeback_path(paths[0], out_dir)
         write_back(

@@ -20,11 +20,20 @@ Mat4 = NDArray[np.float64]
 
 
 class GradientImage(Protocol):
-    """Anything with (H, W) image gradients, e.g. ``stages.image_gradients.ImageGradients``."""
+    """Anything with image gradients, e.g. ``stages.image_gradients.ImageGradients``: ``gxy`` (H, W, 2)
+    along columns and rows, and (H, W) views or derivations of it."""
 
-    gx: NDArray[np.float32]
-    gy: NDArray[np.float32]
-    magnitude: NDArray[np.float32]
+    @property
+    def gxy(self) -> NDArray[np.float32]: ...
+
+    @property
+    def gx(self) -> NDArray[np.float32]: ...
+
+    @property
+    def gy(self) -> NDArray[np.float32]: ...
+
+    @property
+    def magnitude(self) -> NDArray[np.float32]: ...
 
 
 @dataclass
@@ -38,7 +47,7 @@ class CalibrationFrame:
             mean of the C scores. Points with a NaN in any column are dropped.
         camera: intrinsics of the image.
         gradients: image gradients (gx, gy, magnitude (H, W)) after blur (``compute_image_gradients``).
-        intensity: (H, W) equalised grey in [0, 1]; needed by the NMI metric only.
+        intensity: (H, W) equalised grey, uint8 0-255 (or float in [0, 1]); needed by the NMI metric only.
         mask: (H, W) bool, True where the image is valid; None: all valid.
         T_camera_camera0: 4x4 pose of the reference camera in this camera (identity for one camera).
         T_lidar_motion: 4x4 ``T_lidar(camera stamp)_lidar(scan stamp)``: ego-motion from the scan
@@ -55,7 +64,7 @@ class CalibrationFrame:
     feature: NDArray[np.floating]
     camera: CameraModel
     gradients: GradientImage
-    intensity: NDArray[np.floating] | None = None
+    intensity: NDArray[np.floating] | NDArray[np.uint8] | None = None
     mask: NDArray[np.bool_] | None = None
     T_camera_camera0: Mat4 = field(default_factory=lambda: np.eye(4))
     T_lidar_motion: Mat4 | None = None
@@ -165,7 +174,7 @@ def build_frame(lidar: LidarFrame, camera: CameraFrame, feature: str = "range",
                                                  intensity=lidar.channel("intensity")))
     values = columns[0] if len(columns) == 1 else np.stack(columns, axis=1)
     grads = compute_image_gradients(camera.image, blur_sigma_px=sigma)
-    grey = np.asarray(cv2.equalizeHist(to_grey_u8(camera.image)), dtype=np.float32) / 255.0
+    grey = np.asarray(cv2.equalizeHist(to_grey_u8(camera.image)), dtype=np.uint8)  # 1 byte a pixel
     return CalibrationFrame(
         points_xyz=np.asarray(lidar.points_xyz, dtype=np.float64), feature=values, camera=camera.camera,
         gradients=grads, intensity=grey,

@@ -168,7 +168,7 @@ def _pose_pixel(R: np.ndarray, points: np.ndarray, i: int, cam: np.ndarray, fs: 
 @njit(inline="always", **NJIT_FLAGS)
 def sample_bicubic2(planes: np.ndarray, u: float, v: float) -> tuple[float, float]:
     """Keys bicubic sample of a 2-channel (H, W, 2) image at (u, v): unrolled interior fast path,
-    clamped edges otherwise (same values as ``sample_bicubic``)."""
+    clamped edges otherwise (the values of ``sample_bicubic``; float32 planes: to float32 rounding)."""
     h = planes.shape[0]
     w = planes.shape[1]
     fu = math.floor(u)
@@ -180,13 +180,17 @@ def sample_bicubic2(planes: np.ndarray, u: float, v: float) -> tuple[float, floa
     a = 0.0
     b = 0.0
     if iu >= 0 and iv >= 0 and iu + 3 < w and iv + 3 < h:
+        # each row's taps in the planes' own precision: float32 planes then need no conversion per tap
+        # (a GOM call 10 % faster); the rows are summed in float64
+        t = planes.dtype.type
+        f0, f1, f2, f3 = t(wu0), t(wu1), t(wu2), t(wu3)
         for j in range(4):
             wv = wv0 if j == 0 else (wv1 if j == 1 else (wv2 if j == 2 else wv3))
             row = iv + j
-            a += wv * (wu0 * planes[row, iu, 0] + wu1 * planes[row, iu + 1, 0]
-                       + wu2 * planes[row, iu + 2, 0] + wu3 * planes[row, iu + 3, 0])
-            b += wv * (wu0 * planes[row, iu, 1] + wu1 * planes[row, iu + 1, 1]
-                       + wu2 * planes[row, iu + 2, 1] + wu3 * planes[row, iu + 3, 1])
+            a += wv * (f0 * planes[row, iu, 0] + f1 * planes[row, iu + 1, 0]
+                       + f2 * planes[row, iu + 2, 0] + f3 * planes[row, iu + 3, 0])
+            b += wv * (f0 * planes[row, iu, 1] + f1 * planes[row, iu + 1, 1]
+                       + f2 * planes[row, iu + 2, 1] + f3 * planes[row, iu + 3, 1])
         return a, b
     c0 = min(max(iu, 0), w - 1)
     c1 = min(max(iu + 1, 0), w - 1)

@@ -70,7 +70,8 @@ def project_points(points_cam: NDArray[np.floating], camera: CameraModel) -> tup
 def sample_bicubic(planes: NDArray[np.floating], uv: NDArray[np.floating]) -> NDArray[np.float64]:
     """Keys bicubic (a = -0.5) samples (N, C) of an (H, W) or (H, W, C) image at pixels (N, 2)
     (pixel centres at integer coordinates, edges clamped)."""
-    return np.asarray(mk.sample_bicubic_kernel(_planes(planes), np.ascontiguousarray(uv, dtype=np.float64)))
+    return np.asarray(mk.sample_bicubic_kernel(_planes(planes, np.float64),
+                                               np.ascontiguousarray(uv, dtype=np.float64)))
 
 
 def _points(points: NDArray[np.floating]) -> NDArray[np.float64]:
@@ -82,8 +83,11 @@ def _points(points: NDArray[np.floating]) -> NDArray[np.float64]:
     return pts
 
 
-def _planes(image: NDArray[np.floating]) -> NDArray[np.float64]:
-    arr = np.asarray(image, dtype=np.float64)
+def _planes(image: NDArray[np.floating], dtype: type[np.floating] = np.float32) -> NDArray[np.floating]:
+    """(H, W, C) C-contiguous copy of an image in ``dtype`` (none when it already is): float32 for the
+    objective's images, whose values come from 8-bit grey levels (half the memory of float64, and the
+    kernels sum in float64)."""
+    arr = np.asarray(image, dtype=dtype)
     if arr.ndim == 2:
         arr = arr[:, :, None]
     if arr.ndim != 3 or arr.shape[0] < 1 or arr.shape[1] < 1:
@@ -141,11 +145,11 @@ class GradientPlanes:
     """One image's gradients packed for the GOM kernel, built once per frame and shared by its scorers.
 
     Attributes:
-        planes: (H, W, 2) float64 image gradient along u and along v (e.g. Sobel), per pixel.
+        planes: (H, W, 2) float32 image gradient along u and along v (e.g. Sobel), per pixel.
         mask: (H, W) uint8, 1 where the image is valid.
     """
 
-    planes: NDArray[np.float64]
+    planes: NDArray[np.floating]
     mask: NDArray[np.uint8]
 
     @classmethod
@@ -158,6 +162,18 @@ class GradientPlanes:
         if igx.shape != (camera.height, camera.width):
             raise ProcessingError(_size_message(igx.shape, camera))
         return cls(_planes(np.stack([igx, igy], axis=2)), _mask(mask, igx.shape))
+
+    @classmethod
+    def of_stacked(cls, image_gxy: NDArray[np.floating], camera: CameraModel,
+                   mask: NDArray[np.generic] | None = None) -> GradientPlanes:
+        """Pack (H, W, 2) gradients (along u, along v) of an image of ``camera``; a C-contiguous float32
+        array (``ImageGradients.gxy``) is shared, not copied."""
+        gxy = np.asarray(image_gxy)
+        if gxy.ndim != 3 or gxy.shape[2] != 2:
+            raise ProcessingError(f"stacked image gradients must be (H, W, 2), got {gxy.shape}")
+        if gxy.shape[:2] != (camera.height, camera.width):
+            raise ProcessingError(_size_message(gxy.shape[:2], camera))
+        return cls(_planes(gxy), _mask(mask, gxy.shape[:2]))
 
     def blurred(self, sigma_px: float) -> GradientPlanes:
         """The gradients smoothed by a Gaussian of ``sigma_px`` pixels (equal to the gradients of the image
@@ -243,10 +259,10 @@ class NmiScorer:
     """NMI (paper eq. 3) of the lidar feature against the image intensity at the projected points."""
 
     def __init__(self, points_xyz: NDArray[np.floating], lidar_values: NDArray[np.floating],
-                 image_intensity: NDArray[np.floating], camera: CameraModel,
+                 image_intensity: NDArray[np.floating] | NDArray[np.uint8], camera: CameraModel,
                  mask: NDArray[np.generic] | None = None, bins: int = 32) -> None:
-        """Args: points (N, 3) lidar frame; lidar feature (N,) in [0, 1]; image intensity (H, W) in
-        [0, 1]; camera intrinsics; optional valid mask; histogram bins per axis."""
+        """Args: points (N, 3) lidar frame; lidar feature (N,) in [0, 1]; image intensity (H, W), float in
+        [0, 1] or uint8 (0-255, scaled); camera intrinsics; optional valid mask; histogram bins per axis."""
         self.points = _points(points_xyz)
         vals = _per_point(lidar_values, self.points.shape[0], "lidar feature")
         if bins < 2:
@@ -256,7 +272,7 @@ class NmiScorer:
         img = np.asarray(image_intensity)
         if img.shape != (camera.height, camera.width):
             raise ProcessingError(_size_message(img.shape, camera))
-        self.planes = _planes(img)
+        self.planes = _planes(img / np.float32(255.0) if img.dtype == np.uint8 else img)
         self.mask = _mask(mask, img.shape)
         self.cam = camera_params(camera)
 

@@ -219,7 +219,7 @@ class CalibrationProblem:
         scorers: list[Scorer] = []
         counts: list[int] = []
         neighbours: NDArray[np.int64] | None = None  # one sphere search per frame, shared by the channels
-        image = GradientPlanes.of(f.gradients.gx, f.gradients.gy, f.camera, f.mask)  # shared too
+        image = GradientPlanes.of_stacked(f.gradients.gxy, f.camera, f.mask)  # shared too
         for c in range(feat.shape[1]):
             scorer, n, neighbours = self._gom_scorer(f, raw, pts, feat[:, c], T_cam_lidar, image, neighbours)
             scorers.append(scorer)
