@@ -35,6 +35,7 @@ from stages.calibration.sphere_gradients import (
     camera_sphere_neighbours,
     compute_sphere_gradients,
     depth_discontinuities,
+    image_plane_gradients,
     lidar_view_gradients,
     ring_spacing_rad,
 )
@@ -247,7 +248,10 @@ class CalibrationProblem:
         if cfg.keep_fraction < 1.0 and np.any(sel):
             cut = np.quantile(magnitude[sel], 1.0 - cfg.keep_fraction)
             sel &= magnitude >= cut
-        scorer = GomScorer(pts[sel], grads.gx[sel], grads.gy[sel], magnitude[sel], image, f.camera,
+        gx, gy = grads.gx[sel], grads.gy[sel]
+        if cfg.lidar_gradient_axes == "image":
+            gx, gy = image_plane_gradients(apply(T_cam_lidar, pts[sel]), gx, gy, f.camera)
+        scorer = GomScorer(pts[sel], gx, gy, magnitude[sel], image, f.camera,
                            T_cam_lidar[:3, :3] if cfg.turn_gradients_with_roll else None)
         return scorer, int(sel.sum()), grads.neighbours
 
