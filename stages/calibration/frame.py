@@ -46,7 +46,8 @@ class CalibrationFrame:
             (e.g. range and normals): each gets its own lidar gradients and the frame's score is the
             mean of the C scores. Points with a NaN in any column are dropped.
         camera: intrinsics of the image.
-        gradients: image gradients (gx, gy, magnitude (H, W)) after blur (``compute_image_gradients``).
+        gradients: image gradients after blur (``compute_image_gradients``): ``gxy`` (H, W, 2), which the
+            objective reads in place, and its ``gx``, ``gy``, ``magnitude`` (H, W).
         intensity: (H, W) equalised grey, uint8 0-255 (or float in [0, 1]); needed by the NMI metric only.
         mask: (H, W) bool, True where the image is valid; None: all valid.
         T_camera_camera0: 4x4 pose of the reference camera in this camera (identity for one camera).
