@@ -50,10 +50,13 @@ class IoConfig:
     Attributes:
         pairing_tolerance_ns: largest lidar/camera stamp difference for a pair, ns.
         allow_truncated: read what is left of a truncated log instead of failing.
+        rectified_topics: image topics whose images are rectified although their names do not say so
+            (ROS names them ``image_rect``...): projected with the CameraInfo's P and R, no distortion.
     """
 
     pairing_tolerance_ns: int = 50_000_000
     allow_truncated: bool = False
+    rectified_topics: list[str] = field(default_factory=list)
 
     def validate(self) -> None:
         _require(self.pairing_tolerance_ns >= 0, "io.pairing_tolerance_ns", "must be >= 0")

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 import struct
-from collections.abc import Iterator, Sequence
+from collections.abc import Collection, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -122,13 +122,15 @@ def iter_pairs(
     start_ns: int | None = None,
     end_ns: int | None = None,
     stats: PairingStats | None = None,
+    rectified_topics: Collection[str] = (),
 ) -> Iterator[tuple[LidarFrame, CameraFrame]]:
     """(LidarFrame, CameraFrame with its CameraModel) pairs, nearest header stamps within ``tolerance_ns``.
 
     Two passes over the raw messages: stamps first (no decoding), then only the paired frames are
     decoded, and each is dropped once its pairs are out, so memory holds a few frames. Pairs come
     in log order. ``max_pairs`` keeps that many pairs spread evenly over the log. Unmatched lidar
-    frames are skipped, counted in ``stats`` and logged.
+    frames are skipped, counted in ``stats`` and logged. The camera model is a rectified one when the
+    camera topic is named so or is in ``rectified_topics`` (``CameraInfoTracker.for_image``).
 
     Raises:
         InputError: a topic is missing or of the wrong type.
@@ -151,7 +153,8 @@ def iter_pairs(
     pairs = _select(matched, max_pairs)
     if not pairs:
         return
-    yield from _decode_pairs(reader, lidar_topic, camera_topic, camera_type, pairs, stats, start_ns, end_ns)
+    yield from _decode_pairs(reader, lidar_topic, camera_topic, camera_type, pairs, stats, start_ns, end_ns,
+                             rectified_topics)
 
 
 def _decode_pairs(
@@ -163,6 +166,7 @@ def _decode_pairs(
     stats: PairingStats,
     start_ns: int | None,
     end_ns: int | None,
+    rectified_topics: Collection[str] = (),
 ) -> Iterator[tuple[LidarFrame, CameraFrame]]:
     lidar_uses: dict[int, int] = {}
     camera_uses: dict[int, int] = {}
@@ -172,7 +176,7 @@ def _decode_pairs(
     pending = sorted(pairs)
     lidar_frames: dict[int, LidarFrame] = {}
     camera_frames: dict[int, CameraFrame] = {}
-    info = CameraInfoTracker.for_image(reader, camera_topic)
+    info = CameraInfoTracker.for_image(reader, camera_topic, rectified_topics)
     topics = [lidar_topic, camera_topic] + ([info.topic] if info.topic else [])
     seen = {lidar_topic: -1, camera_topic: -1}
     first_error: DecodeError | None = None

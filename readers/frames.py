@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import re
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Collection, Iterable, Iterator, Mapping
 from typing import Any
 
 from pipeline.camera_model import CameraModel
@@ -110,10 +110,12 @@ class CameraInfoTracker:
                 self.update(reader, first)
 
     @classmethod
-    def for_image(cls, reader: LogReader, image_topic: str) -> CameraInfoTracker:
+    def for_image(cls, reader: LogReader, image_topic: str,
+                  rectified_topics: Collection[str] = ()) -> CameraInfoTracker:
         """Tracker of the CameraInfo of ``image_topic`` (``camera_info_topic_for``), rectified when the
-        topic's name says so (``is_rectified_topic``)."""
-        return cls(reader, camera_info_topic_for(image_topic, reader.topics), is_rectified_topic(image_topic))
+        topic's name says so (``is_rectified_topic``) or it is one of ``rectified_topics``."""
+        rectified = is_rectified_topic(image_topic) or image_topic in rectified_topics
+        return cls(reader, camera_info_topic_for(image_topic, reader.topics), rectified)
 
     def update(self, reader: LogReader, raw: RawMessage) -> None:
         """Take a new CameraInfo; an undecodable one keeps the previous model (warned once)."""

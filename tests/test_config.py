@@ -211,3 +211,18 @@ def test_no_point_times_flag_reaches_the_config() -> None:
     assert Config().calibration.point_times is True
     assert load_config(env={}, overrides=on).calibration.point_times is True
     assert load_config(env={}, overrides=off).calibration.point_times is False
+
+
+def test_rectified_topic_flags_and_environment_reach_the_config() -> None:
+    from workflows.cli import build_parser
+    from workflows.cmd_calibrate import overrides
+
+    parser = build_parser()
+    args = parser.parse_args(["calibrate", "x.mcap", "--out", "o", "--rectified-topic", "/a/image",
+                              "--rectified-topic", "/b/image"])
+    assert Config().io.rectified_topics == []
+    assert load_config(env={}, overrides=overrides(args)).io.rectified_topics == ["/a/image", "/b/image"]
+    none = overrides(parser.parse_args(["calibrate", "x.mcap", "--out", "o"]))
+    assert load_config(env={}, overrides=none).io.rectified_topics == []
+    env = {"FLEETCAL_IO__RECTIFIED_TOPICS": "/c/image,/d/image"}
+    assert load_config(env=env).io.rectified_topics == ["/c/image", "/d/image"]

@@ -16,9 +16,10 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.camera_model import CameraModel
 from pipeline.errors import DecodeError, TransformError
+from pipeline.pairing import iter_pairs
 from pipeline.transforms import from_xyz_rpy, rotation_error_deg, translation_error_m
 from readers.decode import decode_camera_info, decode_tf, rectification_rotation, stereo_baseline_m
-from readers.frames import is_rectified_topic, iter_camera_frames
+from readers.frames import CameraInfoTracker, is_rectified_topic, iter_camera_frames
 from readers.open import open_log
 from stages.sinks import ros_messages as rm
 from stages.sinks.log_writer import LogWriter
@@ -294,6 +295,30 @@ def test_rectified_and_raw_topics_of_one_camera_get_their_own_models(tmp_path: P
     np.testing.assert_array_equal(raw.K, K)
     assert rect.distortion_model == "none"
     np.testing.assert_allclose(rect.K, K_rect)
+
+
+def test_a_rectified_topic_named_otherwise_is_rectified_when_listed(tmp_path: Path) -> None:
+    """``/cam/image_color`` carries rectified images under a name that does not say so: listed in
+    ``io.rectified_topics`` (``--rectified-topic``) it gets P's intrinsics and no distortion, through the
+    pairing the calibrate workflow uses; unlisted, K and the distortion."""
+    msg, K_rect = _info_with_new_camera_matrix()
+    path = tmp_path / "color.mcap"
+    points = np.array([[5.0, 0.0, 0.0], [6.0, 1.0, 0.5], [7.0, -1.0, 0.2]], np.float32)
+    with LogWriter(path, "mcap") as writer:
+        writer.write("/cam/camera_info", "sensor_msgs/msg/CameraInfo", 1, msg)
+        writer.write("/lidar", "sensor_msgs/msg/PointCloud2", 2, rm.pointcloud2(2, "lidar", points))
+        writer.write("/cam/image_color", "sensor_msgs/msg/Image", 2,
+                     rm.image(2, "cam", np.zeros((480, 640), np.uint8), "mono8"))
+    with open_log(path) as reader:
+        listed = CameraInfoTracker.for_image(reader, "/cam/image_color", ["/cam/image_color"]).model
+        unlisted = CameraInfoTracker.for_image(reader, "/cam/image_color", ["/other/image"]).model
+        [(_, paired)] = list(iter_pairs(reader, "/lidar", "/cam/image_color", rectified_topics=["/cam/image_color"]))
+    assert listed is not None and unlisted is not None and paired.camera is not None
+    assert listed.distortion_model == paired.camera.distortion_model == "none"
+    np.testing.assert_allclose(listed.K, K_rect)
+    np.testing.assert_allclose(paired.camera.K, K_rect)
+    assert unlisted.distortion_model == "plumb_bob"
+    np.testing.assert_array_equal(unlisted.K, K)
 
 
 def test_rectification_R_that_is_not_a_rotation_is_a_decode_error() -> None:

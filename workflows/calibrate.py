@@ -221,7 +221,8 @@ def collect_frames(
     out = _Collected([], None, [], [], "", "", False)
     sparse = 0
     for lidar, camera in iter_pairs(
-        reader, lidar_topic, camera_topic, config.io.pairing_tolerance_ns, max_pairs=c.frames, stats=stats
+        reader, lidar_topic, camera_topic, config.io.pairing_tolerance_ns, max_pairs=c.frames, stats=stats,
+        rectified_topics=config.io.rectified_topics,
     ):
         out.lidar_frame, out.camera_frame = lidar.frame_id.lstrip("/"), camera.frame_id.lstrip("/")
         if lidar.n_points < c.min_points:

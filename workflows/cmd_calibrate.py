@@ -60,6 +60,9 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
                                               "cylindrical", "none"],
                    help="image projection: the CameraInfo's (log, default) or this model with its K and D "
                         "(cylindrical: the GOM paper's panoramic model)")
+    p.add_argument("--rectified-topic", action="append", metavar="TOPIC",
+                   help="image topic that carries rectified images though its name does not say so (ROS: "
+                        "image_rect...); projected with the CameraInfo's P and R; repeat for several")
     p.add_argument("--estimate-focal", action="store_true", help="also estimate a focal length scale")
     p.add_argument("--particles", type=int, metavar="N", help="particle swarm size (default 200)")
     p.add_argument("--seed", type=int, help="random seed")
@@ -93,6 +96,7 @@ def overrides(args: argparse.Namespace) -> dict[str, Any]:
         "calibration.motion_compensation": False if args.no_motion_compensation else None,
         "calibration.point_times": False if args.no_point_times else None,
         "io.allow_truncated": True if args.allow_truncated else None,
+        "io.rectified_topics": args.rectified_topic,
     }
 
 

@@ -91,6 +91,7 @@ class ColorSource:
     tolerance_ns: int
     allow_truncated: bool = False
     camera_model: str = "log"
+    rectified_topics: tuple[str, ...] = ()
 
 
 @functools.lru_cache(maxsize=4)
@@ -98,7 +99,8 @@ def _worker_reader(paths: tuple[str, ...], allow_truncated: bool) -> Any:
     return open_log(list(paths) if len(paths) > 1 else paths[0], allow_truncated=allow_truncated)
 
 
-def _nearest_image(reader: Any, topic: str, stamp_ns: int, tolerance_ns: int) -> Any:
+def _nearest_image(reader: Any, topic: str, stamp_ns: int, tolerance_ns: int,
+                   rectified_topics: tuple[str, ...] = ()) -> Any:
     """The decoded image of ``topic`` nearest ``stamp_ns`` (header stamps) within the tolerance, or None."""
     margin = tolerance_ns + 200_000_000
     best, best_gap = None, tolerance_ns + 1
@@ -109,14 +111,14 @@ def _nearest_image(reader: Any, topic: str, stamp_ns: int, tolerance_ns: int) ->
     if best is None:
         return None
     frame = decode_camera_image(reader.topics[topic].msgtype, reader.deserialize(best), topic, best.log_time_ns)
-    frame.camera = _camera_model(reader, topic)
+    frame.camera = _camera_model(reader, topic, rectified_topics)
     return frame
 
 
 @functools.lru_cache(maxsize=16)
-def _camera_model(reader: Any, topic: str) -> Any:
+def _camera_model(reader: Any, topic: str, rectified_topics: tuple[str, ...] = ()) -> Any:
     """The first CameraInfo of ``topic``'s camera, read once per worker and topic."""
-    return CameraInfoTracker.for_image(reader, topic).model
+    return CameraInfoTracker.for_image(reader, topic, rectified_topics).model
 
 
 def colorize_scan(frame: LidarFrame, source: ColorSource) -> LidarFrame:
@@ -125,7 +127,7 @@ def colorize_scan(frame: LidarFrame, source: ColorSource) -> LidarFrame:
     reader = _worker_reader(source.paths, source.allow_truncated)
     views = []
     for topic, T_rows in source.cameras:
-        image = _nearest_image(reader, topic, frame.stamp_ns, source.tolerance_ns)
+        image = _nearest_image(reader, topic, frame.stamp_ns, source.tolerance_ns, source.rectified_topics)
         camera = None if image is None else with_model(image.camera, source.camera_model)
         if image is not None and camera is not None:
             views.append((image.image, camera, np.array(T_rows)))
@@ -192,6 +194,7 @@ def process_log(
         source = ColorSource(
             tuple(paths), tuple((p.camera_topic, tuple(map(tuple, p.T_camera_lidar.tolist()))) for p in pairs),
             config.io.pairing_tolerance_ns, config.io.allow_truncated, config.calibration.camera_model,
+            tuple(config.io.rectified_topics),
         )  # fmt: skip
         first = next(iter(reader.messages(topics=[lidar_topic])), None)
         has_intensity = first is not None and any(
