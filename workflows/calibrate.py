@@ -297,6 +297,9 @@ def run_calibration(
         log.warning("ignoring the log's tf: %s", err)
         tree = None
     solver = solver_config(config)
+    for topic in config.io.rectified_topics:
+        if topic not in reader.topics:
+            log.warning("rectified topic %s is not in the log: ignored", topic)
     collected: dict[str, _Collected] = {}
     with Progress(
         total=config.calibration.frames * len(camera_topics), desc="calibration frames", quiet=quiet
