@@ -159,9 +159,7 @@ class GradientPlanes:
         igx, igy = np.asarray(image_gx), np.asarray(image_gy)
         if igx.shape != igy.shape or igx.ndim != 2:
             raise ProcessingError(f"image gradients {igx.shape} / {igy.shape} must be equal (H, W)")
-        if igx.shape != (camera.height, camera.width):
-            raise ProcessingError(_size_message(igx.shape, camera))
-        return cls(_planes(np.stack([igx, igy], axis=2)), _mask(mask, igx.shape))
+        return cls.of_stacked(np.stack([igx, igy], axis=2), camera, mask)
 
     @classmethod
     def of_stacked(cls, image_gxy: NDArray[np.floating], camera: CameraModel,

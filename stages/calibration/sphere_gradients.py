@@ -309,7 +309,7 @@ def image_plane_gradients(points_cam: NDArray[np.floating], gx: NDArray[np.float
     def direction(az: NDArray[np.float64], polar: NDArray[np.float64]) -> NDArray[np.float64]:
         return r[:, None] * np.column_stack([np.sin(polar) * np.sin(az), -np.cos(polar), np.sin(polar) * np.cos(az)])
 
-    px0, _ = camera.project(direction(uv[:, 0], uv[:, 1]))
+    px0, _ = camera.project(p)
     px_a, _ = camera.project(direction(uv[:, 0] + step_rad, uv[:, 1]))
     px_p, _ = camera.project(direction(uv[:, 0], uv[:, 1] + step_rad))
     j_ua, j_va = (px_a - px0).T / step_rad
