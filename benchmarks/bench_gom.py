@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.camera_model import CameraModel
 from pipeline.config import Config
-from stages.calibration import GomScorer, GradientPlanes, calibrate
+from stages.calibration import CalibrationResult, GomScorer, GradientPlanes, calibrate
 from tests.test_calibration_real import LOGS, errors, load_real_frames
 from tests.test_calibration_synthetic import perturb
 from workflows.calibrate import solver_config
@@ -79,9 +79,15 @@ def bench_kernel(n_points: int = 80_000, n_poses: int = 200, repeats: int = 5) -
           f"{int(batch.counts.mean())} points projected")
 
 
+def verdict_of(result: CalibrationResult) -> str:
+    """The verdict, with ``+t held`` where the translation was held at the initial guess's."""
+    return result.verdict + ("+t held" if result.translation_held else "")
+
+
 def table(names: list[str], metrics: list[str]) -> None:
     print(f"\n{'log':18s} {'metric':9s} {'rot_deg':>8s} {'trans_m':>8s} {'score':>8s} {'init':>8s} "
           f"{'runtime_s':>9s} {'frames':>6s} verdict   (log tf start: rot_deg trans_m)")
+    print("(+t held: no 6-DoF run confirmed another and the translation was held at the log's)")
     for name in names:
         log, kwargs = CASES[name]
         if not (LOGS / log).exists():
@@ -94,7 +100,7 @@ def table(names: list[str], metrics: list[str]) -> None:
             rot, trans = errors(result.T_camera_lidar, problem.T_true)
             print(f"{name:18s} {metric:9s} {rot:8.3f} {trans:8.3f} {result.score:8.4f} "
                   f"{result.initial_score:8.4f} {result.runtime_s:9.1f} {result.frames_used:6d} "
-                  f"{result.verdict:9s} ({r0:.2f} {t0:.3f})",
+                  f"{verdict_of(result):9s} ({r0:.2f} {t0:.3f})",
                   flush=True)
 
 
@@ -130,7 +136,7 @@ def sim_table(names: list[str], metrics: list[str]) -> None:
                 trans = translation_error_m(result.T_camera_lidar, T_true)
                 print(f"{name:18s} {metric:9s} {rot:8.3f} {trans:8.3f} {result.score:8.4f} "
                       f"{result.initial_score:8.4f} {result.runtime_s:9.1f} {deg:4.0f}/{metres:.1f}m "
-                      f"{result.gradient_viewpoint:9s} {result.verdict}", flush=True)
+                      f"{result.gradient_viewpoint:9s} {verdict_of(result)}", flush=True)
 
 
 def rings_study(n: int) -> None:

@@ -128,7 +128,11 @@ class CalibrationConfig:
         particles: particle swarm size.
         iterations: particle swarm iterations.
         search_deg: half-width of the rotation search around the initial guess, degrees.
-        search_m: half-width of the translation search, metres.
+        search_m: half-width of the translation search, metres (0: the translation is held).
+        translation: ``estimate`` (6 DoF), ``hold`` (rotation only, the translation kept at the initial
+            guess's) or ``auto`` (default): estimated, but held where the seeded 6-DoF runs do not confirm
+            one another and the box is within 5 deg / 0.5 m (the initial guess is trusted); evidence in
+            ``stages.calibration.config.CalibrationConfig``.
         blur_sigma_px: Gaussian blur of camera images before the Sobel, pixels (0: max(2, width / 620)).
         k_neighbours: neighbours for lidar normals and sphere gradients.
         seed: random seed.
@@ -174,6 +178,7 @@ class CalibrationConfig:
     iterations: int = 100
     search_deg: float = 5.0
     search_m: float = 0.5
+    translation: Literal["auto", "estimate", "hold"] = "auto"
     blur_sigma_px: float = 0.0
     k_neighbours: int = 8
     seed: int = 0

@@ -201,6 +201,27 @@ def test_ring_smoothing_reaches_the_solver_and_rejects_other_values() -> None:
         replace(solver_config(Config()), ring_smoothing_fraction=0.0).validate()
 
 
+def test_translation_flag_reaches_the_solver_and_a_zero_box_holds_it() -> None:
+    from workflows.calibrate import solver_config
+    from workflows.cli import build_parser
+    from workflows.cmd_calibrate import overrides
+
+    parser = build_parser()
+    assert solver_config(Config()).translation == "auto"
+    assert not solver_config(Config()).holds_translation
+    held = overrides(parser.parse_args(["calibrate", "x.mcap", "--out", "o", "--translation", "hold"]))
+    assert solver_config(load_config(env={}, overrides=held)).holds_translation
+    zero_box = solver_config(load_config(env={"FLEETCAL_CALIBRATION__SEARCH_M": "0"}))
+    zero_box.validate()
+    assert zero_box.holds_translation
+    with pytest.raises(ConfigError, match=r"calibration\.translation.*auto, estimate, hold"):
+        load_config(env={"FLEETCAL_CALIBRATION__TRANSLATION": "free"})
+    with pytest.raises(ConfigError, match="translation"):
+        replace(solver_config(Config()), translation="free").validate()
+    with pytest.raises(SystemExit):
+        parser.parse_args(["calibrate", "x.mcap", "--out", "o", "--translation", "free"])
+
+
 def test_no_point_times_flag_reaches_the_config() -> None:
     from workflows.cli import build_parser
     from workflows.cmd_calibrate import overrides

@@ -53,6 +53,10 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--ring-smoothing", choices=["auto", "on", "off"],
                    help="GOM also scores image gradients smoothed across the lidar's rings (a third of their "
                         "spacing); auto (default): on where that exceeds the image blur (sparse rings)")
+    p.add_argument("--translation", choices=["auto", "estimate", "hold"],
+                   help="estimate the translation, or hold it at the initial guess's (rotation only); auto "
+                        "(default): held where the seeded runs disagree on it from a trusted start (box within "
+                        "5 deg / 0.5 m)")
     p.add_argument("--no-motion-compensation", action="store_true", help="ignore /tf odometry")
     p.add_argument("--no-point-times", action="store_true",
                    help="move each scan by its stamp, not each point by its time field (de-skewed clouds)")
@@ -82,6 +86,7 @@ def overrides(args: argparse.Namespace) -> dict[str, Any]:
         "calibration.frames": args.frames,
         "calibration.search_deg": args.search_deg,
         "calibration.search_m": args.search_m,
+        "calibration.translation": args.translation,
         "calibration.particles": args.particles,
         "calibration.seed": args.seed,
         "calibration.repeats": args.repeats,
@@ -130,5 +135,7 @@ def run(args: argparse.Namespace) -> int:
         for p in pairs:
             if p.result.verdict_reason:
                 print(f"{p.camera_topic}: suspect: {p.result.verdict_reason}")
+            if p.result.translation_held:
+                print(f"{p.camera_topic}: rotation only: the translation is held at the initial guess's")
         print(f"wrote {out_dir}/calibration.parquet, frames.parquet, report/", file=sys.stderr)
     return 0

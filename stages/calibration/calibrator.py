@@ -70,6 +70,8 @@ class CalibrationResult:
         gradient_viewpoint: viewpoint of the lidar gradients that was used (``auto`` resolved).
         ring_smoothing_px: largest across-ring smoothing of the image gradients over the frames, pixels
             (0: none; see ``CalibrationConfig.ring_smoothing``).
+        translation_held: the translation was not estimated but kept at the initial guess's
+            (``CalibrationConfig.translation``); ``translation_std_m`` is then NaN.
     """
 
     T_camera_lidar: Mat4
@@ -93,6 +95,7 @@ class CalibrationResult:
     metric: str
     gradient_viewpoint: str
     ring_smoothing_px: float = 0.0
+    translation_held: bool = False
 
 
 PARAMETER_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz", "focal_scale")
@@ -100,12 +103,14 @@ PARAMETER_UNITS = (" deg", " deg", " deg", " m", " m", " m", "")  # as printed a
 
 
 def box_edge(x: NDArray[np.float64], lower: NDArray[np.float64], upper: NDArray[np.float64],
-             fraction: float) -> list[str]:
-    """The parameters of x that lie within ``fraction`` of the box's half-width from its edge, each
-    described as ``"ty = -0.500 m (box -0.500..0.500)"``."""
+             fraction: float, free: NDArray[np.bool_] | None = None) -> list[str]:
+    """The parameters of x (of those ``free`` to move, default all) that lie within ``fraction`` of the
+    box's half-width from its edge, each described as ``"ty = -0.500 m (box -0.500..0.500)"``."""
     half = 0.5 * (upper - lower)
     centre = 0.5 * (upper + lower)
     at_edge = np.abs(x - centre) >= (1.0 - fraction) * half
+    if free is not None:
+        at_edge &= free
     return [f"{PARAMETER_NAMES[i]} = {x[i]:+.3f}{PARAMETER_UNITS[i]} (box {lower[i]:+.3f}..{upper[i]:+.3f})"
             for i in np.flatnonzero(at_edge)]
 
@@ -130,8 +135,8 @@ class _Run:
     iterations: int
 
 
-def _best_of(problem: CalibrationProblem, seed: int) -> _Run:
-    swarm, polish = problem.optimise(seed)
+def _best_of(problem: CalibrationProblem, seed: int, hold_translation: bool) -> _Run:
+    swarm, polish = problem.optimise(seed, hold_translation)
     best = polish if polish is not None else swarm
     return _Run(best.best_score, best.best_x, problem.T_camera_lidar(best.best_x),
                 swarm.iterations + (polish.iterations if polish is not None else 0))
@@ -149,6 +154,17 @@ def _agreeing(runs: list[_Run], best: int, cfg: CalibrationConfig) -> int:
     """Runs confirming ``runs[best]`` (``agreeing_repeats``)."""
     return agreeing_repeats([run.T_camera_lidar for run in runs], best, cfg.agree_rotation_deg,
                             cfg.agree_translation_m)
+
+
+def _seeded_runs(problem: CalibrationProblem, cfg: CalibrationConfig, hold_translation: bool) -> tuple[
+        list[_Run], int]:
+    """``repeats`` seeded runs and the index of the best, plus up to ``confirm_repeats`` more while no run
+    confirms it (they only confirm: the best stays the best of the first ``repeats``)."""
+    runs = [_best_of(problem, cfg.seed + r, hold_translation) for r in range(cfg.repeats)]
+    best = int(np.argmax([run.score for run in runs]))
+    while cfg.repeats > 1 and len(runs) < cfg.repeats + cfg.confirm_repeats and _agreeing(runs, best, cfg) == 0:
+        runs.append(_best_of(problem, cfg.seed + len(runs), hold_translation))
+    return runs, best
 
 
 def resolve_auto_rules(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
@@ -188,10 +204,14 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     centre = 0.5 * (problem.lower + problem.upper)
     start = time.perf_counter()
     init_scores, _ = problem.frame_scores(centre[None])
-    runs = [_best_of(problem, cfg.seed + r) for r in range(cfg.repeats)]
-    best_index = int(np.argmax([run.score for run in runs]))  # extra runs below only confirm it
-    while cfg.repeats > 1 and len(runs) < cfg.repeats + cfg.confirm_repeats and _agreeing(runs, best_index, cfg) == 0:
-        runs.append(_best_of(problem, cfg.seed + len(runs)))
+    hold = cfg.holds_translation
+    runs, best_index = _seeded_runs(problem, cfg, hold)
+    if (cfg.translation == "auto" and not hold and not cfg.wide_box and cfg.repeats > 1
+            and _agreeing(runs, best_index, cfg) == 0):  # the translation may be what the runs disagree on
+        held_runs, held_best = _seeded_runs(problem, cfg, hold_translation=True)
+        turned = rotation_error_deg(held_runs[held_best].T_camera_lidar, runs[best_index].T_camera_lidar)
+        if _agreeing(held_runs, held_best, cfg) > 0 and turned <= cfg.agree_rotation_deg:
+            runs, best_index, hold = held_runs, held_best, True
     runtime = time.perf_counter() - start
     best_run = runs[best_index]
     score, x_best, iterations = best_run.score, best_run.x, best_run.iterations
@@ -205,7 +225,8 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     if len(runs) > 1:
         Ts = [run.T_camera_lidar for run in runs]
         rot_std = float(np.sqrt(np.mean([rotation_error_deg(T, T_best) ** 2 for T in Ts])))
-        trans_std = float(np.sqrt(np.mean([translation_error_m(T, T_best) ** 2 for T in Ts])))
+        trans_std = float("nan") if hold else float(np.sqrt(np.mean([translation_error_m(T, T_best) ** 2
+                                                                    for T in Ts])))
     agreeing = _agreeing(runs, best_index, cfg)
     chance = {"gom": 0.5, "nmi": 1.0, "levinson": 0.0}[cfg.metric]
     flat = _flat(problem, x_best, score, chance)
@@ -213,7 +234,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     moved = (rotation_error_deg(T_best, problem.T_init) > cfg.ok_rotation_deg
              or translation_error_m(T_best, problem.T_init) > cfg.ok_translation_m)
     reason = ""
-    edge = box_edge(x_best, problem.lower, problem.upper, cfg.box_edge_fraction)
+    edge = box_edge(x_best, problem.lower, problem.upper, cfg.box_edge_fraction, problem.free_parameters(hold))
     held = problem.overlap_limited(x_best, cfg.box_edge_fraction) if cfg.min_overlap_fraction > 0 else []
     if cfg.metric == "gom" and score < cfg.gom_suspect_below:
         reason = f"GOM {score:.3f} is below {cfg.gom_suspect_below}"
@@ -242,4 +263,5 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         iterations=iterations, evaluations=problem.evaluations, verdict=verdict, verdict_reason=reason, flat=flat,
         rotation_std_deg=rot_std, translation_std_m=trans_std, agreeing_repeats=agreeing,
         focal_scale=float(x_best[6]) if x_best.size > 6 else 1.0, metric=cfg.metric,
-        gradient_viewpoint=cfg.viewpoint, ring_smoothing_px=max(problem.ring_smoothing_px))
+        gradient_viewpoint=cfg.viewpoint, ring_smoothing_px=max(problem.ring_smoothing_px),
+        translation_held=hold)

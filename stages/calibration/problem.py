@@ -3,6 +3,7 @@ channel and their smoothed twins) and scored for whole batches of candidate extr
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from functools import partial
 from typing import Protocol
@@ -320,18 +321,43 @@ class CalibrationProblem:
         """``evaluate`` against the blurred image gradients of the exploration phase."""
         return np.asarray(self.frame_scores(x, explore=True)[0].mean(axis=1))
 
-    def optimise(self, seed: int) -> tuple[SwarmResult, SwarmResult | None]:
+    def free_parameters(self, hold_translation: bool = False) -> NDArray[np.bool_]:
+        """(D,) which parameters the optimiser searches: those with a box of non-zero width, less the
+        translation when ``hold_translation`` (it stays at the initial guess's)."""
+        free = self.upper > self.lower
+        if hold_translation:
+            free[3:6] = False
+        return np.asarray(free)
+
+    def optimise(self, seed: int, hold_translation: bool = False) -> tuple[SwarmResult, SwarmResult | None]:
+        """One seeded swarm (+ polish) run over the free parameters (``free_parameters``); the others stay
+        at the box's centre (the initial guess). Results are given in all D parameters."""
         cfg = self.config
+        free = self.free_parameters(hold_translation)
         centre = 0.5 * (self.lower + self.upper)
-        swarm = particle_swarm(self.evaluate, self.lower, self.upper, n_particles=cfg.n_particles,
+
+        def full(z: NDArray[np.floating]) -> NDArray[np.float64]:
+            z = np.atleast_2d(np.asarray(z, dtype=np.float64))
+            x = np.tile(centre, (z.shape[0], 1))
+            x[:, free] = z
+            return x
+
+        def on_free(objective: Callable[[NDArray[np.floating]], NDArray[np.float64]]) -> Callable[
+                [NDArray[np.float64]], NDArray[np.float64]]:
+            return lambda z: objective(full(z))
+
+        def in_full(result: SwarmResult) -> SwarmResult:
+            return dataclasses.replace(result, best_x=full(result.best_x)[0])
+
+        lower, upper = self.lower[free], self.upper[free]
+        swarm = particle_swarm(on_free(self.evaluate), lower, upper, n_particles=cfg.n_particles,
                                max_iterations=cfg.max_iterations, stall_iterations=cfg.stall_iterations,
                                min_iterations=cfg.min_iterations, score_tolerance=cfg.swarm_tolerance,
-                               seed=seed, x_initial=centre,
-                               explore_objective=self.evaluate_explore if self.explore_scorers else None,
+                               seed=seed, x_initial=centre[free],
+                               explore_objective=on_free(self.evaluate_explore) if self.explore_scorers else None,
                                explore_iterations=cfg.explore_phase_iterations)
         if not cfg.polish:
-            return swarm, None
-        step = 0.1 * (self.upper - self.lower)
-        polish = pattern_search(self.evaluate, swarm.best_x, step, self.lower, self.upper,
+            return in_full(swarm), None
+        polish = pattern_search(on_free(self.evaluate), swarm.best_x, 0.1 * (upper - lower), lower, upper,
                                 min_step_fraction=0.005, score_at_x0=swarm.best_score)
-        return swarm, polish
+        return in_full(swarm), in_full(polish)
