@@ -138,6 +138,23 @@ def test_calibrate_and_map_commands(sim_log: Path, tmp_path: Path, capsys: pytes
     assert mapped["scans"] == 6 and mapped["map_points"] > 1000 and mapped["channels"] == "none"
 
 
+def test_calibrate_with_the_translation_held_says_so_and_keeps_the_camera_centre(
+        sim_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--search-m 0``: rotation only; the table says so and calibration.parquet keeps the camera's centre
+    in the lidar frame where the log's tf puts it."""
+    out = tmp_path / "held"
+    code = main(["calibrate", str(sim_log), "--config", str(sim_log.parent / "small.toml"), "--out", str(out),
+                 "-q", "--no-report", "--search-m", "0"])  # fmt: skip
+    assert code == 0
+    assert "rotation only: the translation is held at the initial guess's" in capsys.readouterr().out
+    row = pq.read_table(out / "calibration.parquet").to_pylist()[0]
+    T_est = from_quat([row["tx_m"], row["ty_m"], row["tz_m"]], [row["qx"], row["qy"], row["qz"], row["qw"]])
+    truth = json.loads(sim_log.with_name("street.truth.json").read_text())["pairs"][0]
+    T_in_log = np.asarray(truth["T_camera_lidar_in_log"])
+    np.testing.assert_allclose(invert(T_est)[:3, 3], invert(T_in_log)[:3, 3], atol=1e-6)
+    assert rotation_error_deg(T_est, T_in_log) > 0.1  # the rotation was estimated
+
+
 @pytest.mark.parametrize(
     ("args", "code", "message"),
     [

@@ -107,7 +107,14 @@ def overrides(args: argparse.Namespace) -> dict[str, Any]:
 
 def run(args: argparse.Namespace) -> int:
     from workflows import calibrate as recipe
-    from workflows.common import config_from_args, open_logs, prepare_out_dir, table, write_config
+    from workflows.common import (
+        calibration_notes,
+        config_from_args,
+        open_logs,
+        prepare_out_dir,
+        table,
+        write_config,
+    )
     from workflows.sensors import resolve_cameras, resolve_lidar
 
     config = config_from_args(args, overrides(args))
@@ -124,7 +131,8 @@ def run(args: argparse.Namespace) -> int:
     recipe.write_calibration(pairs, config, out_dir)
     if not args.no_report:
         recipe.landscape(pairs[0], config, out_dir)
-    result = {"out": str(out_dir), "pairs": [p.summary() for p in pairs]}
+    summaries = [p.summary() for p in pairs]
+    result = {"out": str(out_dir), "pairs": summaries}
     if args.json:
         emit_json(result)
     else:
@@ -132,10 +140,7 @@ def run(args: argparse.Namespace) -> int:
                  f"{s['change_deg']:.2f}", f"{100 * s['change_m']:.1f}", f"{p.result.runtime_s:.1f}"]
                 for p, s in ((p, p.summary()) for p in pairs)]  # fmt: skip
         print(table(rows, ["camera", "verdict", "initial", "score", "change deg", "change cm", "time s"]))
-        for p in pairs:
-            if p.result.verdict_reason:
-                print(f"{p.camera_topic}: suspect: {p.result.verdict_reason}")
-            if p.result.translation_held:
-                print(f"{p.camera_topic}: rotation only: the translation is held at the initial guess's")
+        for line in calibration_notes(summaries):
+            print(line)
         print(f"wrote {out_dir}/calibration.parquet, frames.parquet, report/", file=sys.stderr)
     return 0

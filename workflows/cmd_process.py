@@ -28,7 +28,7 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from workflows.common import config_from_args, prepare_out_dir, table
+    from workflows.common import calibration_notes, config_from_args, prepare_out_dir, table
     from workflows.process import process_log
 
     config = config_from_args(args, {
@@ -44,6 +44,8 @@ def run(args: argparse.Namespace) -> int:
     rows = [[c["camera_topic"], c["verdict"], f"{c['initial_score']:.4f}", f"{c['score']:.4f}",
              f"{c['change_deg']:.2f}", f"{100 * c['change_m']:.1f}"] for c in result.calibrations]  # fmt: skip
     print(table(rows, ["camera", "verdict", "initial", "score", "change deg", "change cm"]))
+    for line in calibration_notes(result.calibrations):
+        print(line)
     if result.mapping:
         m = result.mapping
         print(f"map: {m['scans']} scans ({m['channels']}), path {m['path_length_m']:.1f} m, {m['map_points']} points")

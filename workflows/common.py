@@ -51,6 +51,18 @@ def write_config(config: Config, out_dir: Path) -> Path:
     return write_toml(config, out_dir / "config.toml")
 
 
+def calibration_notes(calibrations: list[dict[str, Any]]) -> list[str]:
+    """Lines under a calibration table: why a pair is ``suspect``, and where its translation was held
+    (``PairCalibration.summary()`` dicts)."""
+    notes = []
+    for c in calibrations:
+        if c.get("verdict_reason"):
+            notes.append(f"{c['camera_topic']}: suspect: {c['verdict_reason']}")
+        if c.get("translation_held"):
+            notes.append(f"{c['camera_topic']}: rotation only: the translation is held at the initial guess's")
+    return notes
+
+
 def table(rows: list[list[str]], header: list[str]) -> str:
     """Plain-text table with aligned columns."""
     widths = [max(len(str(r[i])) for r in [header, *rows]) for i in range(len(header))]
