@@ -138,6 +138,26 @@ def test_calibrate_and_map_commands(sim_log: Path, tmp_path: Path, capsys: pytes
     assert mapped["scans"] == 6 and mapped["map_points"] > 1000 and mapped["channels"] == "none"
 
 
+def test_calibration_notes_name_suspects_held_and_rough_translations() -> None:
+    from workflows.common import calibration_notes
+
+    pairs = [
+        {"camera_topic": "/a", "verdict_reason": "flat optimum", "translation_held": False, "translation_std_m": 0.6},
+        {"camera_topic": "/b", "verdict_reason": "", "translation_held": True, "translation_std_m": None},
+        {"camera_topic": "/c", "verdict_reason": "", "translation_held": False, "translation_std_m": 0.31},
+        {"camera_topic": "/d", "verdict_reason": "", "translation_held": False, "translation_std_m": 0.026},
+    ]
+    assert calibration_notes(pairs) == [
+        "/a: suspect: flat optimum",
+        "/b: rotation only: the translation is held at the initial guess's",
+        "/c: the seeded runs spread 31 cm in translation (RMS from the estimate): treat the translation as rough",
+    ]
+    joint = [dict(pairs[2], camera_topic=topic) for topic in ("/front", "/back")]
+    assert calibration_notes(joint) == [
+        "all 2 cameras: the seeded runs spread 31 cm in translation (RMS from the estimate): treat the translation "
+        "as rough"]
+
+
 def test_calibrate_with_the_translation_held_says_so_and_keeps_the_camera_centre(
         sim_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """``--search-m 0``: rotation only; the table says so and calibration.parquet keeps the camera's centre

@@ -51,16 +51,31 @@ def write_config(config: Config, out_dir: Path) -> Path:
     return write_toml(config, out_dir / "config.toml")
 
 
-def calibration_notes(calibrations: list[dict[str, Any]]) -> list[str]:
-    """Lines under a calibration table: why a pair is ``suspect``, and where its translation was held
-    (``PairCalibration.summary()`` dicts)."""
-    notes = []
+def calibration_notes(calibrations: list[dict[str, Any]], rough_spread_m: float = 0.15) -> list[str]:
+    """Lines under a calibration table (``PairCalibration.summary()`` dicts): why a pair is ``suspect``,
+    where its translation was held, and where the seeded runs spread more than ``rough_spread_m`` in
+    translation although the estimate was confirmed (e.g. nuScenes' 32 beams: 31 cm). A note that holds for
+    every one of several pairs (a ``--joint`` rig) is given once, for "all N cameras"."""
+    topics_of: dict[str, list[str]] = {}  # note -> the pairs it holds for, in order
     for c in calibrations:
+        notes = []
         if c.get("verdict_reason"):
-            notes.append(f"{c['camera_topic']}: suspect: {c['verdict_reason']}")
+            notes.append(f"suspect: {c['verdict_reason']}")
         if c.get("translation_held"):
-            notes.append(f"{c['camera_topic']}: rotation only: the translation is held at the initial guess's")
-    return notes
+            notes.append("rotation only: the translation is held at the initial guess's")
+        spread_m = c.get("translation_std_m")
+        if not c.get("verdict_reason") and spread_m is not None and spread_m > rough_spread_m:
+            notes.append(f"the seeded runs spread {100 * spread_m:.0f} cm in translation (RMS from the estimate): "
+                         "treat the translation as rough")
+        for note in notes:
+            topics_of.setdefault(note, []).append(str(c["camera_topic"]))
+    lines = []
+    for note, topics in topics_of.items():
+        if len(calibrations) > 1 and len(topics) == len(calibrations):
+            lines.append(f"all {len(topics)} cameras: {note}")
+        else:
+            lines.extend(f"{topic}: {note}" for topic in topics)
+    return lines
 
 
 def table(rows: list[list[str]], header: list[str]) -> str:
