@@ -139,7 +139,8 @@ class CalibrationConfig:
         repeats: seeded optimiser runs; their spread is the reported uncertainty.
         confirm_repeats: while no other run lands within 0.5 deg / 15 cm of the best, up to this many
             more are made (they only confirm it); if none does, the verdict is ``suspect``. 0 bounds the
-            runtime of batch jobs at ``repeats`` runs.
+            runtime of batch jobs at ``repeats`` runs, or twice that with ``translation = "auto"``, which
+            then makes the runs again with the translation held.
         keep_fraction: GOM only: fraction of in-view points with the largest lidar gradient kept.
         estimate_focal: also estimate a common scale of fx and fy.
         min_points: scans with fewer points are skipped.
