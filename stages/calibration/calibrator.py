@@ -58,7 +58,8 @@ class CalibrationResult:
         evaluations: candidate poses scored over all repeats.
         verdict: ``ok`` (initial guess confirmed), ``recalibrated`` or ``suspect`` (GOM below
             ``gom_suspect_below``, a flat optimum, an estimate at the edge of the search box or on a
-            frame's overlap limit, or no other seeded run agreeing with the returned one).
+            frame's overlap limit, no other seeded run agreeing with the returned one, or a held translation
+            whose rotation lies away from the unconfirmed 6-DoF best's; ``CalibrationConfig.translation``).
         verdict_reason: why ``suspect`` (empty otherwise).
         flat: True when the optimum is not distinct from its neighbourhood.
         rotation_std_deg, translation_std_m: RMS deviation of the repeats from the returned estimate
@@ -205,12 +206,13 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     start = time.perf_counter()
     init_scores, _ = problem.frame_scores(centre[None])
     hold = cfg.holds_translation
+    turned_deg = 0.0  # rotation between a held estimate and the unconfirmed 6-DoF best it replaced
     runs, best_index = _seeded_runs(problem, cfg, hold)
     if (cfg.translation == "auto" and not hold and not cfg.wide_box and cfg.repeats > 1
             and _agreeing(runs, best_index, cfg) == 0):  # the translation may be what the runs disagree on
         held_runs, held_best = _seeded_runs(problem, cfg, hold_translation=True)
-        turned = rotation_error_deg(held_runs[held_best].T_camera_lidar, runs[best_index].T_camera_lidar)
-        if _agreeing(held_runs, held_best, cfg) > 0 and turned <= cfg.agree_rotation_deg:
+        if _agreeing(held_runs, held_best, cfg) > 0:  # fewer unknowns, confirmed: preferred to an unconfirmed 6 DoF
+            turned_deg = rotation_error_deg(held_runs[held_best].T_camera_lidar, runs[best_index].T_camera_lidar)
             runs, best_index, hold = held_runs, held_best, True
     runtime = time.perf_counter() - start
     best_run = runs[best_index]
@@ -249,6 +251,9 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     elif len(runs) > 1 and agreeing == 0:
         reason = (f"no other of the {len(runs)} seeded runs lands within {cfg.agree_rotation_deg} deg / "
                   f"{cfg.agree_translation_m} m of the best")
+    elif turned_deg > cfg.agree_rotation_deg:
+        reason = (f"the seeded runs disagree; with the translation held they agree on a rotation {turned_deg:.2f} deg "
+                  "from the best 6-DoF run's, so it is not only the translation they disagree on")
     verdict: Verdict
     if reason:
         verdict = "suspect"
