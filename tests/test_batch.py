@@ -44,9 +44,11 @@ START_NS = 1_700_000_000_000_000_000
 
 # ------------------------------------------------------------------------------ fake per-log recipe
 def _fake_log(path: Path, *, start_s: float = 0.0, pose: tuple[float, ...] = (0, 0, 0, 0, 0, 0),
-              error: str | None = None, crash: bool = False) -> Path:  # fmt: skip
-    """A JSON file standing in for a log: the pose the fake recipe 'calibrates', or its failure."""
-    spec = {"start_ns": START_NS + int(start_s * 1e9), "pose": list(pose), "error": error, "crash": crash}
+              error: str | None = None, crash: bool = False, held: bool = False) -> Path:  # fmt: skip
+    """A JSON file standing in for a log: the pose the fake recipe 'calibrates' (``held``: with the translation
+    held), or its failure."""
+    spec = {"start_ns": START_NS + int(start_s * 1e9), "pose": list(pose), "error": error, "crash": crash,
+            "held": held}
     path.write_text(json.dumps(spec), encoding="utf-8")
     return path
 
@@ -71,7 +73,8 @@ def fake_process(paths: list[str], out_dir: Path, config: Config) -> ProcessSumm
         "frames_used": 2, "runtime_s": 0.0,
     }  # fmt: skip
     write_rows([row], CALIBRATION_SCHEMA, out_dir / "calibration.parquet")
-    calibration = {"camera_topic": row["camera_topic"], "verdict": "ok", "score": score}
+    calibration = {"camera_topic": row["camera_topic"], "verdict": "ok", "score": score,
+                   "translation_held": spec["held"]}
     result = {
         "log_paths": paths, "out_dir": str(out_dir), "runtime_s": 0.0, "stage_times_s": {"calibration": 0.0},
         "calibrations": [calibration], "mapping": {"map_points": 1234}, "writeback_path": None,
@@ -100,7 +103,7 @@ def fleet_logs(tmp_path: Path) -> Path:
     logs.mkdir()
     _fake_log(logs / "a.mcap", start_s=200, pose=(0.10, 0, 0, -90, 0.2, -90))  # 2nd in time: +0.2 deg
     _fake_log(logs / "b.mcap", start_s=100, pose=(0.10, 0, 0, -90, 0, -90))  # 1st in time
-    _fake_log(logs / "c.mcap", start_s=300, pose=(0.16, 0, 0, -90, 0.2, -90))  # 3rd: +6 cm
+    _fake_log(logs / "c.mcap", start_s=300, pose=(0.16, 0, 0, -90, 0.2, -90), held=True)  # 3rd: +6 cm
     _fake_log(logs / "d.mcap", error="d.mcap is not a log (unknown file format)")
     _fake_log(logs / "e.mcap", crash=True)
     (logs / "a.truth.json").write_text("{}", encoding="utf-8")
@@ -168,6 +171,7 @@ def test_batch_records_every_log_and_flags_drift(fleet_logs: Path, tmp_path: Pat
     for row in rows.values():
         assert row["started_ns"] <= row["finished_ns"] and row["runtime_s"] >= 0
     assert rows["d"]["map_points"] is None and rows["d"]["verdicts"] == []
+    assert rows["a"]["translations_held"] == [False] and rows["c"]["translations_held"] == [True]
 
     fleet = pq.read_table(out / FLEET_FILE).to_pylist()
     assert [Path(r["out_dir"]).name for r in fleet] == ["b", "a", "c"]  # time order, not input order
@@ -177,6 +181,13 @@ def test_batch_records_every_log_and_flags_drift(fleet_logs: Path, tmp_path: Pat
     assert fleet[2]["change_deg"] == pytest.approx(0.0, abs=1e-9)
     assert fleet[2]["change_m"] == pytest.approx(0.06, abs=1e-12) and fleet[2]["drift"] is True
     assert fleet[0]["tx_m"] == pytest.approx(0.10) and fleet[1]["verdict"] == "ok"
+    assert [r["translation_held"] for r in fleet] == [False, False, True]
+    from workflows.cmd_batch import fleet_table
+
+    printed = fleet_table(fleet, 0.5, 0.05).splitlines()
+    assert printed[-3].split()[1] == "c" and "0.000 held " in printed[-3]  # c's t xyz, marked
+    assert " held " not in printed[-4]
+    assert printed[-1].startswith("held: the translation is the log's own")
 
     tighter = fleet_summary(result.outcomes, drift_deg=0.1, drift_m=0.1)
     assert [r["drift"] for r in tighter] == [False, True, False]

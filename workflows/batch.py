@@ -17,7 +17,8 @@ previous log, flagged as drift beyond ``drift_deg`` / ``drift_m``.
 Manifest columns (one row per log, input order): ``path, out_dir, status (ok|failed|skipped), error,
 started_ns, finished_ns, runtime_s, log_start_ns, map_points`` and per lidar/camera pair, as lists in
 the same order: ``camera_topics`` (list<string>), ``verdicts`` (list<string>), ``scores``
-(list<double>).
+(list<double>), ``translations_held`` (list<bool>: the translation was kept at the log's, not estimated;
+``CalibrationConfig.translation``).
 """
 
 from __future__ import annotations
@@ -86,6 +87,7 @@ MANIFEST_SCHEMA = pa.schema(
         ("camera_topics", pa.list_(pa.string())),
         ("verdicts", pa.list_(pa.string())),
         ("scores", pa.list_(pa.float64())),
+        ("translations_held", pa.list_(pa.bool_())),
         ("map_points", pa.int64()),
     ]
 )
@@ -99,6 +101,7 @@ FLEET_SCHEMA = pa.schema(
         ("out_dir", pa.string()),
         ("log_start_ns", pa.int64()),
         ("verdict", pa.string()),
+        ("translation_held", pa.bool_()),
         ("score", pa.float64()),
         *POSE_FIELDS,
         *RPY_FIELDS,
@@ -169,6 +172,7 @@ class LogOutcome:
     camera_topics: list[str] = field(default_factory=list)
     verdicts: list[str] = field(default_factory=list)
     scores: list[float] = field(default_factory=list)
+    translations_held: list[bool] = field(default_factory=list)
     map_points: int | None = None
     stage_times_s: dict[str, float] = field(default_factory=dict)
 
@@ -190,6 +194,7 @@ class LogOutcome:
             camera_topics=list(row.get("camera_topics") or []),
             verdicts=list(row.get("verdicts") or []),
             scores=[float(s) for s in row.get("scores") or []],
+            translations_held=[bool(h) for h in row.get("translations_held") or []],
             map_points=row.get("map_points"),
         )
 
@@ -391,6 +396,7 @@ def run_log(job: LogJob, config: Config, process_fn: ProcessFn = process_with_fl
         outcome.camera_topics = [str(c.get("camera_topic", "")) for c in summary.calibrations]
         outcome.verdicts = [str(c.get("verdict", "")) for c in summary.calibrations]
         outcome.scores = [float(c.get("score", float("nan"))) for c in summary.calibrations]
+        outcome.translations_held = [bool(c.get("translation_held", False)) for c in summary.calibrations]
         outcome.map_points = summary.map_points
         outcome.stage_times_s = dict(summary.stage_times_s)
     outcome.finished_ns = time.time_ns()
@@ -561,6 +567,7 @@ def _outcome_from_result_file(job: LogJob) -> LogOutcome | None:
         camera_topics=[str(c.get("camera_topic", "")) for c in result.calibrations],
         verdicts=[str(c.get("verdict", "")) for c in result.calibrations],
         scores=[float(c.get("score", float("nan"))) for c in result.calibrations],
+        translations_held=[bool(c.get("translation_held", False)) for c in result.calibrations],
         map_points=int(map_points) if map_points is not None else None,
     )
 
@@ -607,6 +614,7 @@ def fleet_summary(
             log.warning("batch: cannot read %s (%s)", path, err)
             continue
         verdicts = dict(zip(outcome.camera_topics, outcome.verdicts, strict=False))
+        held = dict(zip(outcome.camera_topics, outcome.translations_held, strict=False))
         for cal in calibrations:
             row = {name: cal.get(name) for name in FLEET_SCHEMA.names}
             row.update(
@@ -614,6 +622,7 @@ def fleet_summary(
                 out_dir=outcome.out_dir,
                 log_start_ns=outcome.log_start_ns,
                 verdict=verdicts.get(str(cal.get("camera_topic"))),
+                translation_held=held.get(str(cal.get("camera_topic"))),
             )
             rows.append(row)
     rows.sort(

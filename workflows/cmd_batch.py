@@ -3,9 +3,9 @@ fleet summary of the calibration over time.
 
 Writes ``DIR/<log stem>/`` per log (the outputs of ``fleetcal process``), ``DIR/manifest.parquet`` (one
 row per log: path, out_dir, status ok|failed|skipped, error, started_ns, finished_ns, runtime_s,
-log_start_ns, camera_topics, verdicts, scores (lists, one per lidar/camera pair), map_points; rewritten
-as each log finishes) and ``DIR/fleet.parquet`` (per rig, ``T_camera_lidar`` per log in time order and
-its change from the previous log, flagged as drift). Exit 0 only when every log succeeded.
+log_start_ns, camera_topics, verdicts, scores, translations_held (lists, one per lidar/camera pair),
+map_points; rewritten as each log finishes) and ``DIR/fleet.parquet`` (per rig, ``T_camera_lidar`` per log in
+time order and its change from the previous log, flagged as drift). Exit 0 only when every log succeeded.
 """
 
 from __future__ import annotations
@@ -114,10 +114,13 @@ def fleet_table(fleet: list[dict[str, Any]], drift_deg: float, drift_m: float) -
         change = f"{r['change_deg']:.2f} / {100 * r['change_m']:.1f}" if r["change_deg"] is not None else "-"
         rows.append([
             f"{r['lidar_frame']}->{r['camera_frame']}", Path(r["out_dir"]).name, start, r["verdict"] or "-",
-            f"{r['tx_m']:.3f} {r['ty_m']:.3f} {r['tz_m']:.3f}",
+            f"{r['tx_m']:.3f} {r['ty_m']:.3f} {r['tz_m']:.3f}" + (" held" if r.get("translation_held") else ""),
             f"{r['roll_deg']:.2f} {r['pitch_deg']:.2f} {r['yaw_deg']:.2f}", change,
             "DRIFT" if r["drift"] else "",
         ])  # fmt: skip
     header = ["rig", "log", "start (UTC)", "verdict", "t xyz m", "rpy deg", "change deg / cm", "drift"]
     flagged = sum(bool(r["drift"]) for r in fleet)
-    return table(rows, header) + f"\n{flagged} drift flag(s) (> {drift_deg} deg or > {100 * drift_m:.1f} cm)"
+    footer = f"\n{flagged} drift flag(s) (> {drift_deg} deg or > {100 * drift_m:.1f} cm)"
+    if any(r.get("translation_held") for r in fleet):
+        footer += "\nheld: the translation is the log's own (the scene did not fix it), not a measurement"
+    return table(rows, header) + footer
