@@ -87,7 +87,7 @@ def verdict_of(result: CalibrationResult) -> str:
 def table(names: list[str], metrics: list[str]) -> None:
     print(f"\n{'log':18s} {'metric':9s} {'rot_deg':>8s} {'trans_m':>8s} {'score':>8s} {'init':>8s} "
           f"{'runtime_s':>9s} {'frames':>6s} verdict   (log tf start: rot_deg trans_m)")
-    print("(+t held: the seeded runs did not fix the translation, which was held at the log's)")
+    print("(+t held: no 6-DoF run confirmed another and the translation was held at the log's)")
     for name in names:
         log, kwargs = CASES[name]
         if not (LOGS / log).exists():

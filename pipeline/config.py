@@ -130,10 +130,9 @@ class CalibrationConfig:
         search_deg: half-width of the rotation search around the initial guess, degrees.
         search_m: half-width of the translation search, metres (0: the translation is held).
         translation: ``estimate`` (6 DoF), ``hold`` (rotation only, the translation kept at the initial
-            guess's) or ``auto`` (default): estimated, but held where the seeded 6-DoF runs do not fix it
-            (none confirms the best, or they spread over 15 cm and holding it leaves the rotation within
-            0.5 deg) and the box is within 5 deg / 0.5 m (the initial guess is trusted); rules and evidence
-            in ``stages.calibration.config.CalibrationConfig``.
+            guess's) or ``auto`` (default): estimated, but held where the seeded 6-DoF runs do not confirm
+            one another and the box is within 5 deg / 0.5 m (the initial guess is trusted); evidence in
+            ``stages.calibration.config.CalibrationConfig``.
         blur_sigma_px: Gaussian blur of camera images before the Sobel, pixels (0: max(2, width / 620)).
         k_neighbours: neighbours for lidar normals and sphere gradients.
         seed: random seed.
@@ -141,7 +140,7 @@ class CalibrationConfig:
         confirm_repeats: while no other run lands within 0.5 deg / 15 cm of the best, up to this many
             more are made (they only confirm it); if none does, the verdict is ``suspect``. 0 bounds the
             runtime of batch jobs at ``repeats`` runs, or twice that with ``translation = "auto"``, which
-            may make the runs again with the translation held.
+            then makes the runs again with the translation held.
         keep_fraction: GOM only: fraction of in-view points with the largest lidar gradient kept.
         estimate_focal: also estimate a common scale of fx and fy.
         min_points: scans with fewer points are skipped.

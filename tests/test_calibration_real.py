@@ -201,9 +201,8 @@ def test_pjlab_two_frames_with_distortion() -> None:
 @pytest.mark.slow
 def test_pjlab_rig2_single_raw_frame_of_another_rig() -> None:
     """Another rig (raw bgr8 ``Image``, 5-coefficient distortion), one frame, workflow defaults: measured
-    2.00 deg / 13.2 cm -> 0.176 deg / 12.2 cm with the translation held. One frame fixes the rotation, not
-    the translation: in 6 DoF (0.304 deg / 16.1 cm) the runs confirm the best but spread 26 cm in
-    translation, and with the translation held they land within 0.5 deg of it (guard at 25 cm)."""
+    2.00 deg / 13.2 cm -> 0.304 deg / 16.1 cm. One frame fixes the rotation; its translation is not
+    observed well enough to improve on the log's 13 cm (guard at 25 cm)."""
     log_path("pjlab_road_rig2")
     problem = load_real_frames("pjlab_road_rig2")
     assert len(problem.frames) == 1
@@ -214,7 +213,6 @@ def test_pjlab_rig2_single_raw_frame_of_another_rig() -> None:
     assert rot <= 0.5, f"rotation error {rot:.3f} deg"
     assert trans <= 0.25, f"translation error {trans:.3f} m"
     assert result.score > result.initial_score
-    assert result.translation_held and result.verdict == "recalibrated"
 
 
 @pytest.mark.slow

@@ -274,7 +274,8 @@ def test_translation_the_scene_does_not_fix_is_held_when_the_runs_disagree_on_it
     land at different places along the shift/turn ridge (measured 0.32 deg / 26 cm and 0.7 / 57 cm apart,
     the best scoring 0.8784 against 0.8781 at the truth), neither confirms the other, and the verdict is
     ``suspect``; ``auto`` then holds the translation, and the rotation-only runs agree on the truth (0.01
-    deg)."""
+    deg). Confirmation is a weak test of a ridge: with 3 runs and 3 more to confirm, two of them landed
+    within 0.5 deg / 15 cm of each other by chance and the 6-DoF estimate, 26 cm off, was ``recalibrated``."""
     wall = far_wall_frame()
     T_true = true_T_camera_lidar()
     T_init = perturb(T_true, 1.0, 0.0, seed=2)
@@ -285,23 +286,6 @@ def test_translation_the_scene_does_not_fix_is_held_when_the_runs_disagree_on_it
     held = calibrate([wall], T_init, cfg)
     assert held.translation_held and held.verdict == "recalibrated" and held.agreeing_repeats >= 1
     np.testing.assert_allclose(camera_centre_lidar(held.T_camera_lidar), camera_centre_lidar(T_true), atol=1e-9)
-    assert rotation_error_deg(held.T_camera_lidar, T_true) < 0.1
-
-
-def test_translation_is_held_where_runs_confirm_by_chance_but_spread_along_the_ridge() -> None:
-    """Far wall, 3 runs: two land within 0.5 deg / 15 cm of each other by chance and confirm a 6-DoF estimate
-    26 cm off, but the runs spread 47 cm in translation (more than 15 cm). ``auto`` then tries the rotation
-    alone; its runs agree within 0.5 deg of the 6-DoF best (the rotation does not care which translation it
-    is given), so the held estimate is returned: 0.01 deg, ``recalibrated``."""
-    wall = far_wall_frame()
-    T_true = true_T_camera_lidar()
-    T_init = perturb(T_true, 1.0, 0.0, seed=2)
-    cfg = CalibrationConfig(search_deg=2.0, search_m=0.5, n_particles=60, repeats=3)
-    free = calibrate([wall], T_init, dataclasses.replace(cfg, translation="estimate"))
-    assert free.verdict == "recalibrated" and free.agreeing_repeats >= 1 and free.translation_std_m > 0.15
-    assert translation_error_m(free.T_camera_lidar, T_true) > 0.15
-    held = calibrate([wall], T_init, cfg)
-    assert held.translation_held and held.verdict == "recalibrated"
     assert rotation_error_deg(held.T_camera_lidar, T_true) < 0.1
 
 

@@ -168,12 +168,6 @@ def _seeded_runs(problem: CalibrationProblem, cfg: CalibrationConfig, hold_trans
     return runs, best
 
 
-def _translation_spread_m(runs: list[_Run], best: int) -> float:
-    """RMS translation distance (metres) of the runs from ``runs[best]``."""
-    return float(np.sqrt(np.mean([translation_error_m(run.T_camera_lidar, runs[best].T_camera_lidar) ** 2
-                                  for run in runs])))
-
-
 def resolve_auto_rules(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
                       config: CalibrationConfig) -> CalibrationConfig:
     """``config`` with the data part of the ``auto`` rules applied, for a scan whose rings are so sparse
@@ -214,16 +208,11 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     hold = cfg.holds_translation
     turned_deg = 0.0  # rotation between a held estimate and the unconfirmed 6-DoF best it replaced
     runs, best_index = _seeded_runs(problem, cfg, hold)
-    confirmed = _agreeing(runs, best_index, cfg) > 0
-    spread_m = _translation_spread_m(runs, best_index)
     if (cfg.translation == "auto" and not hold and not cfg.wide_box and cfg.repeats > 1
-            and (not confirmed or spread_m > cfg.agree_translation_m)):  # the translation may not be fixed
+            and _agreeing(runs, best_index, cfg) == 0):  # the translation may be what the runs disagree on
         held_runs, held_best = _seeded_runs(problem, cfg, hold_translation=True)
-        turned = rotation_error_deg(held_runs[held_best].T_camera_lidar, runs[best_index].T_camera_lidar)
-        # fewer unknowns, confirmed: preferred to an unconfirmed 6 DoF; to a confirmed one only where the
-        # rotation does not care which translation it is given
-        if _agreeing(held_runs, held_best, cfg) > 0 and (not confirmed or turned <= cfg.agree_rotation_deg):
-            turned_deg = turned
+        if _agreeing(held_runs, held_best, cfg) > 0:  # fewer unknowns, confirmed: preferred to an unconfirmed 6 DoF
+            turned_deg = rotation_error_deg(held_runs[held_best].T_camera_lidar, runs[best_index].T_camera_lidar)
             runs, best_index, hold = held_runs, held_best, True
     runtime = time.perf_counter() - start
     best_run = runs[best_index]
@@ -238,7 +227,8 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     if len(runs) > 1:
         Ts = [run.T_camera_lidar for run in runs]
         rot_std = float(np.sqrt(np.mean([rotation_error_deg(T, T_best) ** 2 for T in Ts])))
-        trans_std = float("nan") if hold else _translation_spread_m(runs, best_index)
+        trans_std = float("nan") if hold else float(np.sqrt(np.mean([translation_error_m(T, T_best) ** 2
+                                                                    for T in Ts])))
     agreeing = _agreeing(runs, best_index, cfg)
     chance = {"gom": 0.5, "nmi": 1.0, "levinson": 0.0}[cfg.metric]
     flat = _flat(problem, x_best, score, chance)

@@ -17,35 +17,26 @@ class CalibrationConfig:
         search_deg, search_m: half-widths of the search box around the initial guess (``search_m`` 0: the
             translation is held at the initial guess's, as with ``translation = "hold"``).
         translation: ``estimate`` (6 degrees of freedom), ``hold`` (rotation only; the translation stays at
-            the initial guess's) or ``auto`` (default). ``auto`` estimates it; where the box is not
-            ``wide_box`` (the initial guess is trusted: a drifted factory calibration, whose mounts bend more
-            than they shift) and the seeded runs do not fix the translation, the runs are made again with the
-            translation held (``CalibrationResult.translation_held``). "Not fixed" is either of:
-            - no other run confirms the best (``agree_rotation_deg`` / ``agree_translation_m``): a held best
-              that another held run confirms is returned, being confirmed with fewer unknowns; it stays
-              ``suspect`` where its rotation is more than ``agree_rotation_deg`` from the 6-DoF best's (the
-              runs disagreed on more than the translation). Held runs that do not confirm one another leave
-              the 6-DoF best, ``suspect``;
-            - the best is confirmed, but the runs spread more than ``agree_translation_m`` in translation (RMS
-              from the best; two runs can meet on a ridge by chance): a confirmed held best is returned only
-              if its rotation is within ``agree_rotation_deg`` of the 6-DoF best's (the rotation does not
-              care which translation it is given); otherwise the 6-DoF best stands.
-            A scene that does not fix the translation (nothing near) thus keeps the factory translation
-            instead of moving it by tens of centimetres. Evidence, defaults, from the log's start (6 DoF ->
-            held):
-            - PJLab rig1 (no return nearer than ~4 m): 0.172 deg / 27.3 cm, 6 runs 3.3 deg / 64 cm apart, none
-              confirming -> 0.238 deg / 12.1 cm (the log's translation error is 11.9 cm), 0.10 deg from the
-              6-DoF best: ``recalibrated``;
-            - PJLab rig2 (one frame): 0.304 deg / 16.1 cm, confirmed, runs spread 26 cm -> 0.176 deg /
-              12.2 cm, ``recalibrated``;
-            - nuScenes joint: 0.576 deg / 31.0 cm, confirmed, runs spread 31 cm; held 1.16 deg from the 6-DoF
-              best (its translation matters to the rotation), so the 6-DoF estimate stands (runtime 48 ->
-              82 s for the held runs);
-            - KITTI: spread 2.6 cm, unchanged;
+            the initial guess's) or ``auto`` (default): estimate it, but where no other seeded run confirms
+            the best (``agree_rotation_deg`` / ``agree_translation_m``) and the box is not ``wide_box`` (the
+            initial guess is trusted: a drifted factory calibration, whose mounts bend more than they
+            shift), the runs are made again with the translation held, and if another held run confirms their
+            best, that is returned (``CalibrationResult.translation_held``): with fewer unknowns, confirmed, it
+            is preferred to an unconfirmed 6-DoF estimate. It stays ``suspect`` where its rotation lies further
+            than ``agree_rotation_deg`` from the 6-DoF best's (the runs did not disagree on the translation
+            alone). Held runs that do not confirm one another leave the 6-DoF best, ``suspect``. A log whose
+            scene does not fix the translation (no near structure) thus keeps the factory translation instead
+            of moving it by tens of centimetres to an optimum no other run finds. Evidence, defaults, from the
+            log's start (6 DoF -> held):
+            - PJLab rig1 (no return nearer than ~4 m): 0.172 deg / 27.3 cm, 6 runs 3.3 deg / 64 cm apart ->
+              0.238 deg / 12.1 cm (the log's translation error is 11.9 cm), 0.10 deg from the 6-DoF best:
+              ``recalibrated``;
             - simulated street, 32 beams, from 2 deg / 10 cm, start seeds 7, 8, 9: 0.71 / 24, 2.58 / 56,
               2.56 / 56 -> 1.45 / 10.7, 0.48 / 10.0, 0.71 / 10.2, each 1.7-2.7 deg from the 6-DoF best:
-              ``suspect`` both ways; 16 beams, seed 7: 5.28 / 80 -> 3.41 / 9.5 (5.9 deg from it): ``suspect``
-              both ways.
+              ``suspect`` both ways;
+            - 16 beams, seed 7: 5.28 / 80 -> 3.41 / 9.5 (5.9 deg from it): ``suspect`` both ways;
+            - KITTI, PJLab rig2 and nuScenes are confirmed in 6 DoF and unchanged (holding nuScenes'
+              translation would cost rotation: 1.16 deg vs 0.58).
         n_particles, max_iterations, stall_iterations, min_iterations, score_tolerance: particle
             swarm (paper: 200 particles); after ``min_iterations`` it stops when the best score has
             gained less than ``score_tolerance`` for ``stall_iterations`` iterations. ``None``: 1e-4 for
