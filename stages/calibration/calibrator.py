@@ -237,7 +237,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
              or translation_error_m(T_best, problem.T_init) > cfg.ok_translation_m)
     reason = ""
     edge = box_edge(x_best, problem.lower, problem.upper, cfg.box_edge_fraction, problem.free_parameters(hold))
-    held = problem.overlap_limited(x_best, cfg.box_edge_fraction) if cfg.min_overlap_fraction > 0 else []
+    on_limit = problem.overlap_limited(x_best, cfg.box_edge_fraction) if cfg.min_overlap_fraction > 0 else []
     if cfg.metric == "gom" and score < cfg.gom_suspect_below:
         reason = f"GOM {score:.3f} is below {cfg.gom_suspect_below}"
     elif flat:
@@ -245,8 +245,8 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     elif edge:
         reason = (f"the estimate is at the edge of the search box ({'; '.join(edge)}): the best pose may lie "
                   "outside it; check the initial guess or widen --search-deg / --search-m")
-    elif held:
-        reason = (f"the estimate sits on the overlap limit ({'; '.join(held)}): fewer lidar points in view "
+    elif on_limit:
+        reason = (f"the estimate sits on the overlap limit ({'; '.join(on_limit)}): fewer lidar points in view "
                   "would have scored higher; check the initial guess")
     elif len(runs) > 1 and agreeing == 0:
         reason = (f"no other of the {len(runs)} seeded runs lands within {cfg.agree_rotation_deg} deg / "
