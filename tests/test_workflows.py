@@ -156,6 +156,12 @@ def test_calibration_notes_name_suspects_held_and_rough_translations() -> None:
     assert calibration_notes(joint) == [
         "all 2 cameras: the seeded runs spread 31 cm in translation (RMS from the estimate): treat the translation "
         "as rough"]
+    weak = {"camera_topic": "/e", "verdict_reason": "", "translation_held": False, "translation_std_m": 0.03,
+            "weak_translation_axes": ["x", "z"], "translation_axes_frame": "cam_e_optical"}
+    assert calibration_notes([weak, dict(weak, camera_topic="/f", translation_held=True)]) == [
+        "/e: the log fixes the translation only weakly along x (image right), z (optical axis) of cam_e_optical: "
+        "treat those components as rough",
+        "/f: rotation only: the translation is held at the initial guess's"]
 
 
 def test_calibrate_with_the_translation_held_says_so_and_keeps_the_camera_centre(

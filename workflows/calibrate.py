@@ -63,6 +63,7 @@ class PairCalibration:
     lidar_stamps_ns: list[int] = field(default_factory=list)
     n_points: list[int] = field(default_factory=list)
     motion_compensated: bool = False
+    estimate_frame: str = ""  # the camera frame whose axes the translation profile is along ("": camera_frame)
 
     def summary(self) -> dict[str, Any]:
         t, q = to_quat(self.T_camera_lidar)
@@ -86,6 +87,9 @@ class PairCalibration:
             "translation_std_m": _finite_or_none(self.result.translation_std_m),
             "agreeing_repeats": self.result.agreeing_repeats,
             "translation_held": self.result.translation_held,
+            "translation_profile": [_finite_or_none(float(v)) for v in self.result.translation_profile],
+            "weak_translation_axes": list(self.result.weak_translation_axes),
+            "translation_axes_frame": self.estimate_frame or self.camera_frame,
             "frames_used": self.result.frames_used,
             "runtime_s": self.result.runtime_s,
             "motion_compensated": self.motion_compensated,
@@ -321,11 +325,12 @@ def run_calibration(
 
 
 def _pair(
-    lidar_topic: str, topic: str, col: _Collected, result: CalibrationResult, T_camera_lidar: Mat4, T_init: Mat4
+    lidar_topic: str, topic: str, col: _Collected, result: CalibrationResult, T_camera_lidar: Mat4, T_init: Mat4,
+    estimate_frame: str = "",
 ) -> PairCalibration:
     return PairCalibration(
         lidar_topic, topic, col.lidar_frame, col.camera_frame, result, T_camera_lidar, T_init,
-        col.frames, col.overlay_image, col.lidar_stamps, col.n_points, col.compensated,
+        col.frames, col.overlay_image, col.lidar_stamps, col.n_points, col.compensated, estimate_frame,
     )  # fmt: skip
 
 
@@ -354,7 +359,7 @@ def _calibrate_joint(
     result = calibrate(frames, T_init, solver)
     return [
         _pair(lidar_topic, topic, collected[topic], result, T_cam_ref[topic] @ result.T_camera_lidar,
-              T_cam_ref[topic] @ T_init)  # fmt: skip
+              T_cam_ref[topic] @ T_init, ref.camera_frame)  # fmt: skip
         for topic in camera_topics
     ]
 

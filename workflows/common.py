@@ -12,6 +12,8 @@ from pipeline.errors import InputError, UsageError
 from readers.base import LogReader
 from readers.open import open_log, truncation_of
 
+CAMERA_AXIS_NAMES = {"x": "x (image right)", "y": "y (image down)", "z": "z (optical axis)"}
+
 
 def config_from_args(args: argparse.Namespace, overrides: dict[str, Any]) -> Config:
     """Defaults < ``--config`` TOML < ``FLEETCAL_*`` environment < command-line flags."""
@@ -53,9 +55,11 @@ def write_config(config: Config, out_dir: Path) -> Path:
 
 def calibration_notes(calibrations: list[dict[str, Any]], rough_spread_m: float = 0.15) -> list[str]:
     """Lines under a calibration table (``PairCalibration.summary()`` dicts): why a pair is ``suspect``,
-    where its translation was held, and where the seeded runs spread more than ``rough_spread_m`` in
-    translation although the estimate was confirmed (e.g. nuScenes' 32 beams: 31 cm). A note that holds for
-    every one of several pairs (a ``--joint`` rig) is given once, for "all N cameras"."""
+    where its translation was held, where the seeded runs spread more than ``rough_spread_m`` in
+    translation although the estimate was confirmed (e.g. nuScenes' 32 beams: 31 cm), and which translation
+    components the log fixes only weakly (``weak_translation_axes``, of the camera frame
+    ``translation_axes_frame``). A note that holds for every one of several pairs (a ``--joint`` rig) is
+    given once, for "all N cameras"."""
     topics_of: dict[str, list[str]] = {}  # note -> the pairs it holds for, in order
     for c in calibrations:
         notes = []
@@ -67,6 +71,11 @@ def calibration_notes(calibrations: list[dict[str, Any]], rough_spread_m: float 
         if not c.get("verdict_reason") and spread_m is not None and spread_m > rough_spread_m:
             notes.append(f"the seeded runs spread {100 * spread_m:.0f} cm in translation (RMS from the estimate): "
                          "treat the translation as rough")
+        weak = c.get("weak_translation_axes") or []
+        if weak and not c.get("translation_held"):
+            axes = ", ".join(CAMERA_AXIS_NAMES.get(a, a) for a in weak)
+            notes.append(f"the log fixes the translation only weakly along {axes} of {c.get('translation_axes_frame')}"
+                         ": treat those components as rough")
         for note in notes:
             topics_of.setdefault(note, []).append(str(c["camera_topic"]))
     lines = []

@@ -36,6 +36,7 @@ from pipeline.errors import ProcessingError
 from pipeline.transforms import rotation_error_deg, translation_error_m
 from stages.calibration.config import CalibrationConfig
 from stages.calibration.frame import CalibrationFrame, Mat4, fold_rectification
+from stages.calibration.observability import translation_profile, weak_axes
 from stages.calibration.problem import CalibrationProblem
 from stages.calibration.sphere_gradients import cross_ring_neighbours, sphere_coordinates
 
@@ -73,6 +74,12 @@ class CalibrationResult:
             (0: none; see ``CalibrationConfig.ring_smoothing``).
         translation_held: the translation was not estimated but kept at the initial guess's
             (``CalibrationConfig.translation``); ``translation_std_m`` is then NaN.
+        translation_profile: (3,) how well the objective fixes the translation along the (reference)
+            camera's x, y, z against its rotation (``observability.translation_profile``: profile loss of a
+            ``CalibrationConfig.profile_translation_m`` move over the median loss of a ``profile_rotation_deg``
+            turn); NaN where not measured (held translation, profile off).
+        weak_translation_axes: the axes whose ratio is below ``CalibrationConfig.weak_translation_ratio``:
+            the log fixes those components only roughly.
     """
 
     T_camera_lidar: Mat4
@@ -97,6 +104,8 @@ class CalibrationResult:
     gradient_viewpoint: str
     ring_smoothing_px: float = 0.0
     translation_held: bool = False
+    translation_profile: NDArray[np.float64] = dataclasses.field(default_factory=lambda: np.full(3, np.nan))
+    weak_translation_axes: list[str] = dataclasses.field(default_factory=list)
 
 
 PARAMETER_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz", "focal_scale")
@@ -214,9 +223,12 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         if _agreeing(held_runs, held_best, cfg) > 0:  # fewer unknowns, confirmed: preferred to an unconfirmed 6 DoF
             turned_deg = rotation_error_deg(held_runs[held_best].T_camera_lidar, runs[best_index].T_camera_lidar)
             runs, best_index, hold = held_runs, held_best, True
-    runtime = time.perf_counter() - start
     best_run = runs[best_index]
     score, x_best, iterations = best_run.score, best_run.x, best_run.iterations
+    profile = np.full(3, np.nan)
+    if not hold and cfg.profile_translation_m > 0:
+        profile = translation_profile(problem, x_best, score, cfg.profile_translation_m, cfg.profile_rotation_deg)
+    runtime = time.perf_counter() - start
     final_scores, counts = problem.frame_scores(x_best[None])
     if int(counts.sum()) < cfg.min_points:
         raise ProcessingError(
@@ -269,4 +281,5 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         rotation_std_deg=rot_std, translation_std_m=trans_std, agreeing_repeats=agreeing,
         focal_scale=float(x_best[6]) if x_best.size > 6 else 1.0, metric=cfg.metric,
         gradient_viewpoint=cfg.viewpoint, ring_smoothing_px=max(problem.ring_smoothing_px),
-        translation_held=hold)
+        translation_held=hold, translation_profile=profile,
+        weak_translation_axes=weak_axes(profile, cfg.weak_translation_ratio))

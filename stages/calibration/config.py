@@ -97,6 +97,27 @@ class CalibrationConfig:
             chance; the best of thousands of poses on an unrelated image reaches ~0.5-0.55, while
             real matches score 0.6-0.8 (KITTI 0.77, nuScenes 0.65, PJLab 0.60, synthetic 0.85).
         ok_rotation_deg, ok_translation_m: changes below both keep the verdict ``ok``.
+        profile_translation_m, profile_rotation_deg, weak_translation_ratio: after the runs, how well the
+            objective fixes each translation component (``observability.translation_profile``): the score
+            lost when the estimate's translation moves ``profile_translation_m`` along an axis of the
+            (reference) camera, the rest re-fitted, over the median loss of a ``profile_rotation_deg`` turn
+            about the camera's axes (the issue's paired tolerances, 0.5 deg / 15 cm). Below
+            ``weak_translation_ratio`` the axis is named in ``CalibrationResult.weak_translation_axes``: the
+            log fixes that component less well than its rotation, treat it as rough. A diagnostic: it changes
+            neither the estimate nor its verdict; ``profile_translation_m`` 0 turns it off. Runtime 1-2 s.
+            Measured (defaults from each log's start, 6 DoF; camera x / y / z ratio, the estimate's error
+            along that axis in brackets, cm):
+            - KITTI: 0.15 (6.9), 2.02 (2.1), 0.43 (-0.9);
+            - PJLab rig1: 0.17 (-13.3), 0.33 (-6.1), 0.50 (-22.9);
+            - PJLab rig2: 1.04 (2.3), 0.22 (-15.6), 0.18 (-2.9);
+            - nuScenes joint + ego-motion (cam_front's axes): 0.31 (-21.3), 1.25 (-23.1), 0.59 (-4.0);
+            - simulated street, 64 beams, box 10 deg / 1 m: 1.05, 1.77, 1.17 (all under 1 cm);
+            - simulated VLP-16 from 2 deg / 10 cm: 1.47 (1.1), 0.63 (-18.2), 3.35 (-1.5);
+            - synthetic near scene (ground, wall, boxes), 2 starts: 1.9-3.0 on every axis (under 5 cm);
+              textured wall 45 m away: x and y -0.13-0.00 (a shift across the line of sight is a turn), z 1.4-1.9.
+            Every component more than 5 cm off is named but one, nuScenes' y (firm, yet 23 cm off: a biased
+            optimum, which no profile sees); so are three that came out within 4 cm (KITTI z, rig2 z,
+            nuScenes z): weakly fixed, not necessarily wrong.
         agree_rotation_deg, agree_translation_m: with ``repeats`` >= 2 the returned run must be confirmed
             by another seeded run landing within both of it (the accuracy asked of the real logs: 0.5 deg,
             15 cm); while it is not, up to ``confirm_repeats`` further seeded runs are made (they only
@@ -233,6 +254,9 @@ class CalibrationConfig:
     gom_suspect_below: float = 0.55
     ok_rotation_deg: float = 0.2
     ok_translation_m: float = 0.02
+    profile_translation_m: float = 0.15
+    profile_rotation_deg: float = 0.5
+    weak_translation_ratio: float = 1.0
     agree_rotation_deg: float = 0.5
     agree_translation_m: float = 0.15
     confirm_repeats: int = 3
@@ -323,6 +347,10 @@ class CalibrationConfig:
             raise ConfigError("need explore_blur_factor > 0, explore_iterations >= 1 and explore_stride >= 1")
         if self.score_tolerance is not None and not self.score_tolerance >= 0:
             raise ConfigError("score_tolerance must be >= 0")
+        if not (0 <= self.profile_translation_m <= 5 and self.profile_rotation_deg > 0
+                and self.weak_translation_ratio >= 0):
+            raise ConfigError("need 0 <= profile_translation_m <= 5, profile_rotation_deg > 0 and "
+                              "weak_translation_ratio >= 0")
         if not 0 <= self.box_edge_fraction < 1:
             raise ConfigError("box_edge_fraction must be in [0, 1)")
         if not 0 <= self.min_overlap_fraction < 1:
