@@ -44,11 +44,12 @@ START_NS = 1_700_000_000_000_000_000
 
 # ------------------------------------------------------------------------------ fake per-log recipe
 def _fake_log(path: Path, *, start_s: float = 0.0, pose: tuple[float, ...] = (0, 0, 0, 0, 0, 0),
-              error: str | None = None, crash: bool = False, held: bool = False) -> Path:  # fmt: skip
+              error: str | None = None, crash: bool = False, held: bool = False,
+              weak: tuple[str, ...] = ()) -> Path:  # fmt: skip
     """A JSON file standing in for a log: the pose the fake recipe 'calibrates' (``held``: with the translation
-    held), or its failure."""
+    held; ``weak``: the axes it fixes the translation only weakly along), or its failure."""
     spec = {"start_ns": START_NS + int(start_s * 1e9), "pose": list(pose), "error": error, "crash": crash,
-            "held": held}
+            "held": held, "weak": list(weak)}
     path.write_text(json.dumps(spec), encoding="utf-8")
     return path
 
@@ -74,7 +75,7 @@ def fake_process(paths: list[str], out_dir: Path, config: Config) -> ProcessSumm
     }  # fmt: skip
     write_rows([row], CALIBRATION_SCHEMA, out_dir / "calibration.parquet")
     calibration = {"camera_topic": row["camera_topic"], "verdict": "ok", "score": score,
-                   "translation_held": spec["held"]}
+                   "translation_held": spec["held"], "weak_translation_axes": spec.get("weak", [])}
     result = {
         "log_paths": paths, "out_dir": str(out_dir), "runtime_s": 0.0, "stage_times_s": {"calibration": 0.0},
         "calibrations": [calibration], "mapping": {"map_points": 1234}, "writeback_path": None,
@@ -101,7 +102,7 @@ def fleet_logs(tmp_path: Path) -> Path:
     """Five fake logs: three of one rig with known pose changes (input order != time order), two bad."""
     logs = tmp_path / "logs"
     logs.mkdir()
-    _fake_log(logs / "a.mcap", start_s=200, pose=(0.10, 0, 0, -90, 0.2, -90))  # 2nd in time: +0.2 deg
+    _fake_log(logs / "a.mcap", start_s=200, pose=(0.10, 0, 0, -90, 0.2, -90), weak=("x", "z"))  # 2nd: +0.2 deg
     _fake_log(logs / "b.mcap", start_s=100, pose=(0.10, 0, 0, -90, 0, -90))  # 1st in time
     _fake_log(logs / "c.mcap", start_s=300, pose=(0.16, 0, 0, -90, 0.2, -90), held=True)  # 3rd: +6 cm
     _fake_log(logs / "d.mcap", error="d.mcap is not a log (unknown file format)")
@@ -172,6 +173,7 @@ def test_batch_records_every_log_and_flags_drift(fleet_logs: Path, tmp_path: Pat
         assert row["started_ns"] <= row["finished_ns"] and row["runtime_s"] >= 0
     assert rows["d"]["map_points"] is None and rows["d"]["verdicts"] == []
     assert rows["a"]["translations_held"] == [False] and rows["c"]["translations_held"] == [True]
+    assert rows["a"]["translations_weak"] == ["x,z"] and rows["b"]["translations_weak"] == [""]
 
     fleet = pq.read_table(out / FLEET_FILE).to_pylist()
     assert [Path(r["out_dir"]).name for r in fleet] == ["b", "a", "c"]  # time order, not input order
@@ -182,12 +184,15 @@ def test_batch_records_every_log_and_flags_drift(fleet_logs: Path, tmp_path: Pat
     assert fleet[2]["change_m"] == pytest.approx(0.06, abs=1e-12) and fleet[2]["drift"] is True
     assert fleet[0]["tx_m"] == pytest.approx(0.10) and fleet[1]["verdict"] == "ok"
     assert [r["translation_held"] for r in fleet] == [False, False, True]
+    assert [r["translation_weak_axes"] for r in fleet] == ["", "x,z", ""]
     from workflows.cmd_batch import fleet_table
 
     printed = fleet_table(fleet, 0.5, 0.05).splitlines()
-    assert printed[-3].split()[1] == "c" and "0.000 held " in printed[-3]  # c's t xyz, marked
-    assert " held " not in printed[-4]
-    assert printed[-1].startswith("held: the translation is the log's own")
+    assert printed[-4].split()[1] == "c" and "0.000 held " in printed[-4]  # c's t xyz, marked
+    assert printed[-5].split()[1] == "a" and "0.000 rough(x,z) " in printed[-5]
+    assert " held " not in printed[-5] and "rough" not in printed[-6]
+    assert printed[-2].startswith("held: the translation is the log's own")
+    assert printed[-1].startswith("rough(axes): the log fixes the translation only weakly")
 
     tighter = fleet_summary(result.outcomes, drift_deg=0.1, drift_m=0.1)
     assert [r["drift"] for r in tighter] == [False, True, False]

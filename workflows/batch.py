@@ -18,7 +18,8 @@ Manifest columns (one row per log, input order): ``path, out_dir, status (ok|fai
 started_ns, finished_ns, runtime_s, log_start_ns, map_points`` and per lidar/camera pair, as lists in
 the same order: ``camera_topics`` (list<string>), ``verdicts`` (list<string>), ``scores``
 (list<double>), ``translations_held`` (list<bool>: the translation was kept at the log's, not estimated;
-``CalibrationConfig.translation``).
+``CalibrationConfig.translation``), ``translations_weak`` (list<string>: the camera axes along which the
+log fixes the translation only weakly, comma-separated, e.g. ``"x,z"``; ``CalibrationResult.weak_translation_axes``).
 """
 
 from __future__ import annotations
@@ -88,6 +89,7 @@ MANIFEST_SCHEMA = pa.schema(
         ("verdicts", pa.list_(pa.string())),
         ("scores", pa.list_(pa.float64())),
         ("translations_held", pa.list_(pa.bool_())),
+        ("translations_weak", pa.list_(pa.string())),
         ("map_points", pa.int64()),
     ]
 )
@@ -102,6 +104,7 @@ FLEET_SCHEMA = pa.schema(
         ("log_start_ns", pa.int64()),
         ("verdict", pa.string()),
         ("translation_held", pa.bool_()),
+        ("translation_weak_axes", pa.string()),
         ("score", pa.float64()),
         *POSE_FIELDS,
         *RPY_FIELDS,
@@ -173,6 +176,7 @@ class LogOutcome:
     verdicts: list[str] = field(default_factory=list)
     scores: list[float] = field(default_factory=list)
     translations_held: list[bool] = field(default_factory=list)
+    translations_weak: list[str] = field(default_factory=list)
     map_points: int | None = None
     stage_times_s: dict[str, float] = field(default_factory=dict)
 
@@ -195,6 +199,7 @@ class LogOutcome:
             verdicts=list(row.get("verdicts") or []),
             scores=[float(s) for s in row.get("scores") or []],
             translations_held=[bool(h) for h in row.get("translations_held") or []],
+            translations_weak=[str(w) for w in row.get("translations_weak") or []],
             map_points=row.get("map_points"),
         )
 
@@ -370,6 +375,11 @@ def fleetcal_is_complete(out_dir: Path) -> bool:
     return bool(is_complete(out_dir))
 
 
+def _weak_axes(calibration: Mapping[str, Any]) -> str:
+    """A calibration summary's weakly fixed translation axes as the manifest stores them (``"x,z"``, ``""``)."""
+    return ",".join(str(a) for a in calibration.get("weak_translation_axes") or [])
+
+
 def run_log(job: LogJob, config: Config, process_fn: ProcessFn = process_with_fleetcal) -> LogOutcome:
     """Process one log into ``job.out_dir`` and return its manifest row; never raises.
 
@@ -397,6 +407,7 @@ def run_log(job: LogJob, config: Config, process_fn: ProcessFn = process_with_fl
         outcome.verdicts = [str(c.get("verdict", "")) for c in summary.calibrations]
         outcome.scores = [float(c.get("score", float("nan"))) for c in summary.calibrations]
         outcome.translations_held = [bool(c.get("translation_held", False)) for c in summary.calibrations]
+        outcome.translations_weak = [_weak_axes(c) for c in summary.calibrations]
         outcome.map_points = summary.map_points
         outcome.stage_times_s = dict(summary.stage_times_s)
     outcome.finished_ns = time.time_ns()
@@ -568,6 +579,7 @@ def _outcome_from_result_file(job: LogJob) -> LogOutcome | None:
         verdicts=[str(c.get("verdict", "")) for c in result.calibrations],
         scores=[float(c.get("score", float("nan"))) for c in result.calibrations],
         translations_held=[bool(c.get("translation_held", False)) for c in result.calibrations],
+        translations_weak=[_weak_axes(c) for c in result.calibrations],
         map_points=int(map_points) if map_points is not None else None,
     )
 
@@ -615,6 +627,7 @@ def fleet_summary(
             continue
         verdicts = dict(zip(outcome.camera_topics, outcome.verdicts, strict=False))
         held = dict(zip(outcome.camera_topics, outcome.translations_held, strict=False))
+        weak = dict(zip(outcome.camera_topics, outcome.translations_weak, strict=False))
         for cal in calibrations:
             row = {name: cal.get(name) for name in FLEET_SCHEMA.names}
             row.update(
@@ -623,6 +636,7 @@ def fleet_summary(
                 log_start_ns=outcome.log_start_ns,
                 verdict=verdicts.get(str(cal.get("camera_topic"))),
                 translation_held=held.get(str(cal.get("camera_topic"))),
+                translation_weak_axes=weak.get(str(cal.get("camera_topic"))),
             )
             rows.append(row)
     rows.sort(

@@ -114,7 +114,7 @@ def fleet_table(fleet: list[dict[str, Any]], drift_deg: float, drift_m: float) -
         change = f"{r['change_deg']:.2f} / {100 * r['change_m']:.1f}" if r["change_deg"] is not None else "-"
         rows.append([
             f"{r['lidar_frame']}->{r['camera_frame']}", Path(r["out_dir"]).name, start, r["verdict"] or "-",
-            f"{r['tx_m']:.3f} {r['ty_m']:.3f} {r['tz_m']:.3f}" + (" held" if r.get("translation_held") else ""),
+            f"{r['tx_m']:.3f} {r['ty_m']:.3f} {r['tz_m']:.3f}" + _translation_mark(r),
             f"{r['roll_deg']:.2f} {r['pitch_deg']:.2f} {r['yaw_deg']:.2f}", change,
             "DRIFT" if r["drift"] else "",
         ])  # fmt: skip
@@ -123,4 +123,14 @@ def fleet_table(fleet: list[dict[str, Any]], drift_deg: float, drift_m: float) -
     footer = f"\n{flagged} drift flag(s) (> {drift_deg} deg or > {100 * drift_m:.1f} cm)"
     if any(r.get("translation_held") for r in fleet):
         footer += "\nheld: the translation is the log's own (the scene did not fix it), not a measurement"
+    if any(r.get("translation_weak_axes") and not r.get("translation_held") for r in fleet):
+        footer += ("\nrough(axes): the log fixes the translation only weakly along those axes of the camera; a "
+                   "change there may be noise")
     return table(rows, header) + footer
+
+
+def _translation_mark(row: dict[str, Any]) -> str:
+    """What follows a fleet row's translation: `` held``, `` rough(x,z)`` or nothing."""
+    if row.get("translation_held"):
+        return " held"
+    return f" rough({row['translation_weak_axes']})" if row.get("translation_weak_axes") else ""
