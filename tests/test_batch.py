@@ -185,6 +185,12 @@ def test_batch_records_every_log_and_flags_drift(fleet_logs: Path, tmp_path: Pat
     assert fleet[0]["tx_m"] == pytest.approx(0.10) and fleet[1]["verdict"] == "ok"
     assert [r["translation_held"] for r in fleet] == [False, False, True]
     assert [r["translation_weak_axes"] for r in fleet] == ["", "x,z", ""]
+    from workflows.batch import _weak_axes
+
+    rig = {"camera_frame": "cam_back_optical", "weak_translation_axes": ["x"], "translation_axes_frame": "cam_front"}
+    assert _weak_axes(rig) == "x of cam_front"  # a joint rig's axes are its reference camera's
+    assert _weak_axes(dict(rig, translation_axes_frame="cam_back_optical")) == "x"
+    assert _weak_axes(dict(rig, weak_translation_axes=[])) == ""
     from workflows.cmd_batch import fleet_table
 
     printed = fleet_table(fleet, 0.5, 0.05).splitlines()

@@ -19,7 +19,8 @@ started_ns, finished_ns, runtime_s, log_start_ns, map_points`` and per lidar/cam
 the same order: ``camera_topics`` (list<string>), ``verdicts`` (list<string>), ``scores``
 (list<double>), ``translations_held`` (list<bool>: the translation was kept at the log's, not estimated;
 ``CalibrationConfig.translation``), ``translations_weak`` (list<string>: the camera axes along which the
-log fixes the translation only weakly, comma-separated, e.g. ``"x,z"``; ``CalibrationResult.weak_translation_axes``).
+log fixes the translation only weakly, comma-separated, e.g. ``"x,z"``, followed by `` of <frame>`` where they
+are another camera's, the reference camera of a ``--joint`` rig; ``CalibrationResult.weak_translation_axes``).
 """
 
 from __future__ import annotations
@@ -376,8 +377,13 @@ def fleetcal_is_complete(out_dir: Path) -> bool:
 
 
 def _weak_axes(calibration: Mapping[str, Any]) -> str:
-    """A calibration summary's weakly fixed translation axes as the manifest stores them (``"x,z"``, ``""``)."""
-    return ",".join(str(a) for a in calibration.get("weak_translation_axes") or [])
+    """A calibration summary's weakly fixed translation axes as the manifest stores them: ``"x,z"`` (of its own
+    camera), ``"x,z of cam_front_optical"`` (a ``--joint`` rig's reference camera), ``""`` (none)."""
+    axes = ",".join(str(a) for a in calibration.get("weak_translation_axes") or [])
+    frame = calibration.get("translation_axes_frame")
+    if axes and frame and frame != calibration.get("camera_frame"):
+        return f"{axes} of {frame}"
+    return axes
 
 
 def run_log(job: LogJob, config: Config, process_fn: ProcessFn = process_with_fleetcal) -> LogOutcome:
