@@ -3,9 +3,10 @@ fleet summary of the calibration over time.
 
 Writes ``DIR/<log stem>/`` per log (the outputs of ``fleetcal process``), ``DIR/manifest.parquet`` (one
 row per log: path, out_dir, status ok|failed|skipped, error, started_ns, finished_ns, runtime_s,
-log_start_ns, camera_topics, verdicts, scores, translations_held (lists, one per lidar/camera pair),
-map_points; rewritten as each log finishes) and ``DIR/fleet.parquet`` (per rig, ``T_camera_lidar`` per log in
-time order and its change from the previous log, flagged as drift). Exit 0 only when every log succeeded.
+log_start_ns, camera_topics, verdicts, scores, translations_held, translations_weak (lists, one per
+lidar/camera pair), map_points; rewritten as each log finishes) and ``DIR/fleet.parquet`` (per rig,
+``T_camera_lidar`` per log in time order and its change from the previous log, flagged as drift). Exit 0
+only when every log succeeded.
 """
 
 from __future__ import annotations

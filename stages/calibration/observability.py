@@ -10,10 +10,12 @@ firm by this measure).
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 from numpy.typing import NDArray
 
-from stages.calibration.problem import CalibrationProblem
+from stages.calibration.problem import CalibrationProblem, embed
 from stages.calibration.pso import pattern_search
 
 AXES = ("x", "y", "z")
@@ -22,6 +24,11 @@ _REFIT_STEP_DEG = 0.25  # first pattern-search steps of the re-fit: rotation, de
 _REFIT_STEP_M = 0.02  # ... and translation, metres
 _REFIT_STEP_FOCAL = 0.005
 _REFIT_MIN_STEP_FRACTION = 0.05  # down to 0.0125 deg / 1 mm
+
+
+def _evaluate_embedded(problem: CalibrationProblem, z: NDArray[np.floating], base: NDArray[np.float64],
+                       free: NDArray[np.bool_]) -> NDArray[np.float64]:
+    return problem.evaluate(embed(z, base, free))
 
 
 def profile_drop(problem: CalibrationProblem, x_best: NDArray[np.float64], best_score: float, index: int,
@@ -41,13 +48,7 @@ def profile_drop(problem: CalibrationProblem, x_best: NDArray[np.float64], best_
     for sign in (-1.0, 1.0):
         x0 = x_best.copy()
         x0[index] += sign * step
-
-        def objective(z: NDArray[np.floating], x0: NDArray[np.float64] = x0) -> NDArray[np.float64]:
-            z = np.atleast_2d(z)
-            x = np.tile(x0, (z.shape[0], 1))
-            x[:, free] = z
-            return problem.evaluate(x)
-
+        objective = partial(_evaluate_embedded, problem, base=x0, free=free)
         fit = pattern_search(objective, x0[free], steps[free], lower[free], upper[free],
                              min_step_fraction=_REFIT_MIN_STEP_FRACTION)
         drops.append(best_score - fit.best_score)

@@ -57,6 +57,15 @@ def delta_transforms(x: NDArray[np.floating]) -> NDArray[np.float64]:
     return T
 
 
+def embed(z: NDArray[np.floating], base: NDArray[np.float64], free: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """Full parameter vectors (P, D) from values (P, F) of the ``free`` parameters, the others at ``base``
+    (D,): how a search over some parameters is scored by ``CalibrationProblem.evaluate``."""
+    z = np.atleast_2d(np.asarray(z, dtype=np.float64))
+    x = np.tile(base, (z.shape[0], 1))
+    x[:, free] = z
+    return x
+
+
 def _view_cull(points_cam: NDArray[np.float64], camera: CameraModel, margin_rad: float,
                margin_m: float) -> NDArray[np.bool_]:
     """Points that could enter the image for any pose in the search box (conservative)."""
@@ -335,12 +344,7 @@ class CalibrationProblem:
         cfg = self.config
         free = self.free_parameters(hold_translation)
         centre = 0.5 * (self.lower + self.upper)
-
-        def full(z: NDArray[np.floating]) -> NDArray[np.float64]:
-            z = np.atleast_2d(np.asarray(z, dtype=np.float64))
-            x = np.tile(centre, (z.shape[0], 1))
-            x[:, free] = z
-            return x
+        full = partial(embed, base=centre, free=free)
 
         def on_free(objective: Callable[[NDArray[np.floating]], NDArray[np.float64]]) -> Callable[
                 [NDArray[np.float64]], NDArray[np.float64]]:
