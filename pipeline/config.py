@@ -226,6 +226,11 @@ class MappingConfig:
         map_voxel_m: voxel size of the written map, metres.
         robust_kernel: none | huber | cauchy on the registration residuals.
         use_tf_odometry: initial guesses from the log's /tf odometry when it has one.
+        deskew: move each point of a scan with per-point times (``time`` channel) from its firing time
+            to the scan stamp with the odometry's motion (``stages.registration.deskew``). Turn it off
+            for clouds already de-skewed by their driver that still carry firing times.
+        first_motion_max_m: without /tf odometry, the largest motion between the first two scans looked
+            for (their registration's first, coarse pass), metres (``run_odometry``); 0: no coarse pass.
     """
 
     channels: Literal["none", "intensity", "color", "combined"] = "intensity"
@@ -236,6 +241,8 @@ class MappingConfig:
     map_voxel_m: float = 0.1
     robust_kernel: Literal["none", "huber", "cauchy"] = "cauchy"
     use_tf_odometry: bool = True
+    deskew: bool = True
+    first_motion_max_m: float = 4.0
 
     def validate(self) -> None:
         _require(self.voxel_m > 0, "mapping.voxel_m", "must be > 0")
@@ -243,6 +250,7 @@ class MappingConfig:
         _require(self.max_corr_m > 0, "mapping.max_corr_m", "must be > 0")
         _require(self.max_iterations >= 1, "mapping.max_iterations", "must be >= 1")
         _require(self.map_voxel_m > 0, "mapping.map_voxel_m", "must be > 0")
+        _require(self.first_motion_max_m >= 0, "mapping.first_motion_max_m", "must be >= 0")
 
 
 @dataclass

@@ -27,6 +27,8 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--map-voxel", type=float, metavar="M", help="map voxel size, metres")
     p.add_argument("--max-corr", type=float, metavar="M", help="largest correspondence distance, metres")
     p.add_argument("--no-tf-odometry", action="store_true", help="ignore /tf odometry as the initial guess")
+    p.add_argument("--no-deskew", action="store_true",
+                   help="do not de-skew scans by their per-point times (clouds the driver already de-skewed)")
     p.add_argument("--allow-truncated", action="store_true", help="use what is intact of a truncated log")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.set_defaults(func=run)
@@ -44,6 +46,7 @@ def run(args: argparse.Namespace) -> int:
     config = config_from_args(args, {
         "mapping.channels": args.channels, "mapping.voxel_m": args.voxel, "mapping.map_voxel_m": args.map_voxel,
         "mapping.max_corr_m": args.max_corr, "mapping.use_tf_odometry": False if args.no_tf_odometry else None,
+        "mapping.deskew": False if args.no_deskew else None,
         "io.allow_truncated": True if args.allow_truncated else None,
     })  # fmt: skip
     out_dir = prepare_out_dir(args.out)
@@ -60,7 +63,8 @@ def run(args: argparse.Namespace) -> int:
         s = outcome.summary()
         print(f"{s['scans']} scans, path {s['path_length_m']:.1f} m, mean fitness {s['mean_fitness'] or 0:.3f}, "
               f"{len(s['failed_pairs'])} failed and {len(s['degenerate_pairs'])} degenerate pairs, "
-              f"{s['map_points']} map points")  # fmt: skip
+              f"{s['map_points']} map points"
+              + (f", {s['deskewed_scans']} scans de-skewed" if s["deskewed_scans"] else ""))  # fmt: skip
         print(f"wrote {out_dir}/trajectory.parquet, map.parquet, report/map_top.png", file=sys.stderr)
     if outcome.scans_skipped and not args.quiet:
         print(f"warning: skipped {outcome.scans_skipped} unusable scans (empty, NaN or undecodable)", file=sys.stderr)

@@ -67,6 +67,7 @@ class MappingOutcome:
             "degenerate_pairs": [s.index for s in self.steps[1:] if s.degenerate],
             "map_points": int(self.map_points_xyz.shape[0]),
             "used_tf_odometry": self.used_tf_odometry,
+            "deskewed_scans": sum(s.deskewed for s in self.steps),
         }
 
 
@@ -125,7 +126,8 @@ def map_pointsets(
     lidar_frame = scans[0].frame_id.lstrip("/") if scans else ""
     initial = tf_odometry(tree, lidar_frame, [s.stamp_ns for s in scans]) if config.mapping.use_tf_odometry else None
     voxel_map = VoxelMap(config.mapping.map_voxel_m)
-    steps = run_odometry(scans, reg, initial_motion=initial, voxel_map=voxel_map)
+    steps = run_odometry(scans, reg, initial_motion=initial, voxel_map=voxel_map, deskew=config.mapping.deskew,
+                         first_motion_max_m=config.mapping.first_motion_max_m)
     return steps, voxel_map, initial is not None
 
 

@@ -68,6 +68,8 @@ class PointSet:
         dropped_points: non-finite points removed before downsampling.
         stamp_ns: scan time, ns (0 when unknown).
         frame_id: frame of ``points_xyz``.
+        times_s: (N,) capture time of each point minus ``stamp_ns`` (the mean over its voxel), seconds;
+            None when the scan has no per-point time (``deskew`` needs it).
     """
 
     points_xyz: NDArray[np.float64]
@@ -79,6 +81,7 @@ class PointSet:
     dropped_points: int = 0
     stamp_ns: int = 0
     frame_id: str = ""
+    times_s: NDArray[np.float64] | None = None
     _tree: cKDTree | None = field(default=None, init=False, repr=False, compare=False)
     _feature_trees: dict[tuple[float, ...], cKDTree] = field(
         default_factory=dict, init=False, repr=False, compare=False
@@ -163,6 +166,7 @@ def prepare_pointset(
     stamp_ns: int = 0,
     frame_id: str = "",
     max_points: int | None = MAX_PREPARED_POINTS,
+    times_s: NDArray[np.generic] | None = None,
 ) -> PointSet:
     """Drop non-finite points, voxel-downsample (averaging descriptors) and compute covariances.
 
@@ -176,6 +180,8 @@ def prepare_pointset(
         channels: per-point arrays by name (``intensity``, ``r``, ``g``, ``b``), as in LidarFrame.
         config: registration settings (method, channels, voxel size, k, epsilon, Lambda).
         max_points: cap on the prepared points (None: no cap).
+        times_s: optional (N,) per-point time minus the stamp, seconds: averaged per voxel into
+            ``PointSet.times_s`` (ignored unless finite at every kept point).
 
     Raises:
         InputError: wrong shapes, a missing channel, fewer than k points after downsampling.
@@ -192,10 +198,16 @@ def prepare_pointset(
     if desc.shape[1]:
         finite &= np.isfinite(desc).all(axis=1)
     dropped = int(pts.shape[0] - np.count_nonzero(finite))
+    times = _time_column(times_s, finite)
+    if times is not None:
+        desc = np.concatenate([desc, times[:, None]], axis=1)
     pts, desc, _, voxel_m = voxel_downsample_capped(
         pts, config.voxel_size_m, desc, valid=finite, max_voxels=max_points
     )
     del finite
+    voxel_times = None
+    if times is not None:
+        voxel_times, desc = np.ascontiguousarray(desc[:, -1]), desc[:, :-1]
     if voxel_m != config.voxel_size_m:
         log.warning(
             "scan at %d keeps %d points only with %.3g m voxels (not %.3g m): more than max_points=%d",
@@ -230,16 +242,28 @@ def prepare_pointset(
         dropped_points=dropped,
         stamp_ns=stamp_ns,
         frame_id=frame_id,
+        times_s=voxel_times,
     )
+
+
+def _time_column(times_s: NDArray[np.generic] | None, valid: NDArray[np.bool_]) -> NDArray[np.float64] | None:
+    """Per-point times as float64 (N,) (0 at invalid points), or None when absent, misshapen or not
+    finite at every valid point."""
+    if times_s is None:
+        return None
+    times = np.asarray(times_s, dtype=np.float64)
+    if times.shape != valid.shape or not np.all(np.isfinite(times[valid])):
+        return None
+    return np.where(valid, times, 0.0)
 
 
 def pointset_from_frame(
     frame: LidarFrame, config: RegistrationConfig, max_points: int | None = MAX_PREPARED_POINTS
 ) -> PointSet:
-    """``prepare_pointset`` on a LidarFrame (its channels, stamp and frame id)."""
+    """``prepare_pointset`` on a LidarFrame (its channels, stamp, frame id and per-point ``time``)."""
     pointset = prepare_pointset(
         frame.points_xyz, frame.channels, config, stamp_ns=frame.stamp_ns, frame_id=frame.frame_id,
-        max_points=max_points,
+        max_points=max_points, times_s=frame.channels.get("time"),
     )  # fmt: skip
     pointset.dropped_points += frame.dropped_points
     return pointset
