@@ -272,8 +272,8 @@ class _Deskew:
         if not self.enabled or scan.times_s is None:
             return None
         if not usable_times(scan.times_s, interval_s):
-            if not self._warned:
-                span = float(np.ptp(scan.times_s)) if scan.times_s.size else 0.0
+            span = float(np.ptp(scan.times_s)) if scan.times_s.size else 0.0
+            if span > 0 and not self._warned:  # all-zero times: a scan de-skewed by its driver
                 log.warning("scan at %d not de-skewed: its point times span %.3g s for a %.3g s scan interval",
                             scan.stamp_ns, span, interval_s)  # fmt: skip
                 self._warned = True
