@@ -76,6 +76,7 @@ def colorize(
     occlusion_cell_px: int = 4,
     occlusion_rel_tol: float = 0.1,
     occlusion_abs_tol_m: float = 0.1,
+    points_per_view: Sequence[NDArray[np.floating] | None] | None = None,
 ) -> tuple[NDArray[np.uint8], NDArray[np.bool_]]:
     """Colour (N, 3) lidar-frame points (metres) from calibrated camera images.
 
@@ -84,6 +85,8 @@ def colorize(
         images: views ``(image, CameraModel, T_camera_lidar)``; image (H, W, 3) RGB or (H, W) grey, uint8
             (values are sampled as they are and rounded into 0..255).
         occlusion: reject points hidden behind nearer lidar points in a coarse z-buffer.
+        points_per_view: optional, per view, the same N points in the lidar frame at that image's stamp
+            (a moving rig: ``workflows.ego_motion.points_at``); None (or a None entry): ``points_xyz``.
 
     Returns:
         (rgb (N, 3) uint8, seen (N,) bool); rgb is 0 where not seen.
@@ -98,7 +101,14 @@ def colorize(
     finite = np.all(np.isfinite(pts), axis=1)
     best_score = np.full(n, np.inf)
     rgb = np.zeros((n, 3))
+    if points_per_view is not None and len(points_per_view) != len(images):
+        raise InputError(f"points_per_view has {len(points_per_view)} entries for {len(images)} views")
     for index, (image, model, T_camera_lidar) in enumerate(images):
+        view_pts = pts
+        if points_per_view is not None and points_per_view[index] is not None:
+            view_pts = np.asarray(points_per_view[index], dtype=np.float64)
+            if view_pts.shape != pts.shape:
+                raise InputError(f"view {index}: points_per_view is {view_pts.shape}, expected {pts.shape}")
         img = np.asarray(image)
         if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] != 3):
             raise InputError(f"view {index}: image must be (H, W) or (H, W, 3), got {img.shape}")
@@ -110,8 +120,8 @@ def colorize(
         T = np.asarray(T_camera_lidar, dtype=np.float64)
         if not is_rigid(T):
             raise InputError(f"view {index}: T_camera_lidar is not a finite 4x4 rigid transform")
-        idx = np.flatnonzero(finite)
-        p_cam = apply(T, pts[idx])
+        idx = np.flatnonzero(finite & np.all(np.isfinite(view_pts), axis=1))
+        p_cam = apply(T, view_pts[idx])
         uv, valid = model.project(p_cam)
         idx, uv, p_cam = idx[valid], uv[valid], p_cam[valid]
         if idx.size == 0:

@@ -134,3 +134,52 @@ def test_bad_views_raise_input_error() -> None:
         colorize(pts, [(linear_image(), camera(), np.ones((4, 4)))])
     with pytest.raises(InputError, match=r"\(N, 3\)"):
         colorize(np.zeros((3, 2)), [])
+
+
+def _stripes(x_m: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Wall colour by world x: red on [0, 0.5) m of every metre, blue on the rest."""
+    red = np.mod(x_m, 1.0) < 0.5
+    return np.where(red[:, None], [200.0, 0.0, 0.0], [0.0, 0.0, 200.0])
+
+
+@pytest.mark.parametrize("sweep", [False, True])
+def test_moving_rig_colours_points_at_the_image_stamp(sweep: bool) -> None:
+    """A side camera (looking along lidar +y at a striped wall 6 m away) fires 40 ms after the scan stamp
+    while the rig drives along the wall at 10 m/s: 0.4 m of motion, most of a 0.5 m stripe. With the points
+    moved to the image's stamp by the /tf odometry (``ego_motion.points_at``), they take their own stripe's
+    colour; left at the scan stamp, most (whole scan) or half (firing times over the sweep) take the
+    neighbour's."""
+    from pipeline.transforms import TransformTree
+    from workflows.ego_motion import points_at
+
+    speed, stamp_ns, camera_ns = 10.0, 1_700_000_000_000_000_000, 1_700_000_000_040_000_000
+    tree = TransformTree()
+    for t in np.arange(-0.2, 0.3, 0.01):
+        tree.add("odom", "lidar", from_xyz_rpy(speed * t, 0, 0, 0, 0, 0), stamp_ns + round(t * 1e9), static=False)
+    rng = np.random.default_rng(5)
+    world = np.c_[rng.uniform(-3.5, 3.5, 4000), np.full(4000, 6.0), rng.uniform(-1.5, 1.5, 4000)]
+    times = rng.uniform(0.0, 0.1, world.shape[0]) if sweep else np.zeros(world.shape[0])
+    points = world - np.c_[speed * times, np.zeros_like(times), np.zeros_like(times)]  # firing-time frames
+    frame = LidarFrame(stamp_ns, "/lidar", "lidar", points, channels={"time": times} if sweep else {})
+    R_camera_lidar = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])  # optical z = lidar y
+    T_camera_lidar = np.eye(4)
+    T_camera_lidar[:3, :3] = R_camera_lidar
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    rays = R_camera_lidar.T @ np.stack([(u.ravel() - K[0, 2]) / K[0, 0], (v.ravel() - K[1, 2]) / K[1, 1],
+                                         np.ones(u.size)])  # fmt: skip
+    x_hit = speed * 0.04 + rays[0] * 6.0 / rays[1]  # the camera is 0.4 m along at its stamp
+    image = _stripes(x_hit).reshape(H, W, 3).astype(np.uint8)
+    truth = _stripes(world[:, 0])
+    views = [(image, camera(), T_camera_lidar)]
+
+    moved = points_at(tree, frame, camera_ns)
+    assert moved is not None and points_at(None, frame, camera_ns) is None
+    np.testing.assert_allclose(moved, world - [speed * 0.04, 0, 0], atol=1e-6)
+    right = {}
+    for name, per_view in (("at image stamp", [moved]), ("at scan stamp", None)):
+        rgb, seen = colorize(points, views, points_per_view=per_view)
+        assert seen.mean() > 0.95
+        right[name] = float(np.mean(np.abs(rgb[seen].astype(float) - truth[seen]).max(axis=1) < 100))
+    assert right["at image stamp"] > 0.97, right
+    # left where they are, points sit 0.4 m (whole scan) or -0.6..0.4 m (by firing time) off their stripe
+    assert right["at scan stamp"] < (0.6 if sweep else 0.3), right

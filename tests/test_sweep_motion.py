@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 from pipeline.frames import LidarFrame
 from pipeline.transforms import TransformTree, apply, from_xyz_rpy, invert
 from stages.calibration.frame import CalibrationFrame, compensate_ego_motion
-from workflows.calibrate import _sweep_motion
+from workflows.ego_motion import sweep_motion as _sweep_motion
 
 STAMP_NS = 1_700_000_000_000_000_000
 SPEED_M_S = 12.0

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from pipeline.camera_model import with_model
 from pipeline.config import Config
-from pipeline.errors import InputError, ProcessingError, TransformError, UsageError
+from pipeline.errors import InputError, ProcessingError, UsageError
 from pipeline.frames import CameraFrame, LidarFrame
 from pipeline.pairing import PairingStats, iter_pairs
 from pipeline.progress import Progress
@@ -26,13 +26,10 @@ from pipeline.transforms import (
     TransformTree,
     apply,
     from_xyz_rpy,
-    invert,
-    root_of,
     rotation_error_deg,
     to_quat,
     to_rpy_deg,
     translation_error_m,
-    twist_of,
 )
 from readers.base import LogReader
 from readers.frames import load_tf_tree
@@ -41,6 +38,7 @@ from stages.calibration.config import CalibrationConfig as SolverConfig
 from stages.calibration.frame import CalibrationFrame, build_frame
 from stages.sinks import report
 from stages.sinks.tables import CALIBRATION_SCHEMA, FRAMES_SCHEMA, write_rows
+from workflows.ego_motion import scan_motion, sweep_motion
 
 log = logging.getLogger(__name__)
 
@@ -135,57 +133,6 @@ def solver_config(config: Config) -> SolverConfig:
     )
 
 
-def _motion(tree: TransformTree | None, lidar_frame: str, scan_ns: int, camera_ns: int) -> Mat4 | None:
-    """``T_lidar(camera stamp)_lidar(scan stamp)`` from the tf tree's odometry, or None without it."""
-    if tree is None or scan_ns == camera_ns:
-        return None
-    world = root_of(tree, lidar_frame)
-    if world == lidar_frame or tree.is_static_path(world, lidar_frame):
-        return None
-    try:
-        T_world_scan = tree.lookup(world, lidar_frame, scan_ns)
-        T_world_cam = tree.lookup(world, lidar_frame, camera_ns)
-    except TransformError as err:
-        log.warning("no ego-motion compensation for the scan at %d: %s", scan_ns, err)
-        return None
-    return invert(T_world_cam) @ T_world_scan
-
-
-MAX_SWEEP_S = 0.5
-"""Per-point times further than this from the scan stamp are not a sweep's firing times (s)."""
-
-
-def _sweep_motion(
-    tree: TransformTree | None, lidar_frame: str, lidar: LidarFrame, camera_ns: int
-) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
-    """Per-point capture time minus the camera stamp (N,), s, and the lidar's twist over the sweep (6,):
-    velocity (m/s) and angular rate (rad/s) in the lidar frame, from the tf tree's odometry between the
-    scan's first and last point times. None for scans without a per-point time field, with one capture
-    time, with times that do not fit the stamp (more than ``MAX_SWEEP_S`` from it), or without odometry."""
-    times = lidar.channel("time")
-    if tree is None or times is None or lidar.n_points == 0:
-        return None
-    t = np.asarray(times, dtype=np.float64).ravel()
-    finite = np.isfinite(t)
-    if t.shape[0] != lidar.n_points or not finite.any():
-        return None
-    t_first, t_last = float(t[finite].min()), float(t[finite].max())
-    if t_last - t_first < 1e-3:
-        return None
-    if max(abs(t_first), abs(t_last)) > MAX_SWEEP_S:
-        log.warning("scan at %d: per-point times %.3f..%.3f s from its stamp are not a sweep; the scan moves "
-                    "by its stamp", lidar.stamp_ns, t_first, t_last)
-        return None
-    # the sweep's motion T_lidar(first)_lidar(last): _motion from the last point time to the first
-    T_first_last = _motion(tree, lidar_frame, lidar.stamp_ns + round(t_last * 1e9),
-                           lidar.stamp_ns + round(t_first * 1e9))
-    if T_first_last is None:
-        return None
-    twist = twist_of(T_first_last, t_last - t_first)
-    offsets_s = np.where(finite, t, 0.5 * (t_first + t_last)) + (lidar.stamp_ns - camera_ns) * 1e-9
-    return offsets_s, twist
-
-
 def make_frame(
     lidar: LidarFrame,
     camera: CameraFrame,
@@ -236,11 +183,11 @@ def collect_frames(
             sparse += 1
             continue
         sweep = (
-            _sweep_motion(tree, out.lidar_frame, lidar, camera.stamp_ns)
+            sweep_motion(tree, out.lidar_frame, lidar, camera.stamp_ns)
             if c.motion_compensation and c.point_times else None
         )
         motion = (
-            _motion(tree, out.lidar_frame, lidar.stamp_ns, camera.stamp_ns)
+            scan_motion(tree, out.lidar_frame, lidar.stamp_ns, camera.stamp_ns)
             if c.motion_compensation and sweep is None else None
         )
         out.compensated |= motion is not None or sweep is not None

@@ -20,10 +20,11 @@ import numpy as np
 from pipeline.camera_model import with_model
 from pipeline.config import Config, write_toml
 from pipeline.engine import Engine
+from pipeline.errors import InputError
 from pipeline.frames import LidarFrame
 from pipeline.pairing import raw_header_stamp_ns
-from pipeline.transforms import apply
-from readers.frames import CameraInfoTracker, decode_camera_image
+from pipeline.transforms import TransformTree, apply
+from readers.frames import CameraInfoTracker, decode_camera_image, load_tf_tree
 from readers.open import open_log
 from stages.colorize import colorize, fill_unseen
 from stages.registration.pointset import PointSet
@@ -32,6 +33,7 @@ from stages.sinks.report import jpeg_overlay
 from stages.sinks.writeback import CalibratedPose, write_back, writeback_path
 from workflows import calibrate as calib
 from workflows import mapping
+from workflows.ego_motion import points_at
 from workflows.sensors import resolve_cameras, resolve_lidar
 
 log = logging.getLogger(__name__)
@@ -92,6 +94,8 @@ class ColorSource:
     allow_truncated: bool = False
     camera_model: str = "log"
     rectified_topics: tuple[str, ...] = ()
+    ego_motion: bool = True
+    point_times: bool = True
 
 
 @functools.lru_cache(maxsize=4)
@@ -121,19 +125,31 @@ def _camera_model(reader: Any, topic: str, rectified_topics: tuple[str, ...] = (
     return CameraInfoTracker.for_image(reader, topic, rectified_topics).model
 
 
+@functools.lru_cache(maxsize=4)
+def _worker_tree(paths: tuple[str, ...], allow_truncated: bool) -> TransformTree | None:
+    """The log's tf tree, read once per worker (None when the log has no usable tf)."""
+    try:
+        return load_tf_tree(_worker_reader(paths, allow_truncated))
+    except InputError:
+        return None
+
+
 def colorize_scan(frame: LidarFrame, source: ColorSource) -> LidarFrame:
     """Per-frame stage: r, g, b channels from the calibrated cameras; points no camera sees get the
-    mean colour of the seen ones (so they add no colour gradient in MC-GICP)."""
+    mean colour of the seen ones (so they add no colour gradient in MC-GICP). With odometry on ``/tf``
+    (``source.ego_motion``) each image sees the points moved to its own stamp (``ego_motion.points_at``)."""
     reader = _worker_reader(source.paths, source.allow_truncated)
-    views = []
+    tree = _worker_tree(source.paths, source.allow_truncated) if source.ego_motion else None
+    views, moved = [], []
     for topic, T_rows in source.cameras:
         image = _nearest_image(reader, topic, frame.stamp_ns, source.tolerance_ns, source.rectified_topics)
         camera = None if image is None else with_model(image.camera, source.camera_model)
         if image is not None and camera is not None:
             views.append((image.image, camera, np.array(T_rows)))
+            moved.append(points_at(tree, frame, image.stamp_ns, source.point_times) if tree is not None else None)
     points = np.asarray(frame.points_xyz, dtype=np.float64)
     if views:
-        rgb, seen = colorize(points, views)
+        rgb, seen = colorize(points, views, points_per_view=moved)
     else:
         rgb, seen = np.zeros((points.shape[0], 3), np.uint8), np.zeros(points.shape[0], bool)
     rgb = fill_unseen(rgb, seen).astype(np.float32)
@@ -194,7 +210,7 @@ def process_log(
         source = ColorSource(
             tuple(paths), tuple((p.camera_topic, tuple(map(tuple, p.T_camera_lidar.tolist()))) for p in pairs),
             config.io.pairing_tolerance_ns, config.io.allow_truncated, config.calibration.camera_model,
-            tuple(config.io.rectified_topics),
+            tuple(config.io.rectified_topics), config.calibration.motion_compensation, config.calibration.point_times,
         )  # fmt: skip
         first = next(iter(reader.messages(topics=[lidar_topic])), None)
         has_intensity = first is not None and any(

@@ -385,10 +385,11 @@ def run_odometry(
                 guess = _orthonormalize(invert(T_map_prev) @ T_map_coarse)
             result, T_map_curr = registered(skew.apply(raw, skew.twist(raw, guess, interval_s)), guess)
             T_prev_curr = _orthonormalize(invert(T_map_prev) @ T_map_curr)
-            if skew.twist(raw, T_prev_curr, interval_s) is not None:  # again, de-skewed by the estimate
-                result, T_map_curr = registered(skew.apply(raw, skew.twist(raw, T_prev_curr, interval_s)), T_prev_curr)
+            twist = skew.twist(raw, T_prev_curr, interval_s)
+            if twist is not None:  # again, de-skewed by the estimate
+                result, T_map_curr = registered(skew.apply(raw, twist), T_prev_curr)
                 T_prev_curr = _orthonormalize(invert(T_map_prev) @ T_map_curr)
-            if first_scan is not None and index == 1:
+            if first_scan is not None:
                 # the first scan, de-skewed with the first motion estimate, replaces its skewed self
                 first_twist = skew.twist(first_scan[1], T_prev_curr, interval_s)
                 if first_twist is not None:
@@ -397,8 +398,8 @@ def run_odometry(
                         local_map = LocalMap(config, local_map_keyframes)
                         local_map.add(previous, T_map_prev)
                     steps[0].deskewed = True
-                    result, T_map_curr = registered(skew.apply(raw, skew.twist(raw, T_prev_curr, interval_s)),
-                                                    T_prev_curr)  # fmt: skip
+                    twist = skew.twist(raw, T_prev_curr, interval_s)
+                    result, T_map_curr = registered(skew.apply(raw, twist), T_prev_curr)
                     T_prev_curr = _orthonormalize(invert(T_map_prev) @ T_map_curr)
                 if voxel_map is not None:
                     points, channels = _map_points(first_scan[0], first_scan[1], first_twist)
@@ -419,14 +420,11 @@ def run_odometry(
                 ):
                     local_map.add(current, T_map_curr)
         steps.append(step)
-        if voxel_map is not None:
-            if index == 0 and skew.enabled and raw.times_s is not None:
-                first_scan = (scan, raw)  # inserted once the first motion is known
-            else:
-                points, channels = _map_points(scan, current, twist)
-                voxel_map.insert(apply(T_map_curr, points), channels)
-        elif index == 0 and skew.enabled and raw.times_s is not None:
-            first_scan = (scan, raw)
+        if index == 0 and skew.enabled and raw.times_s is not None:
+            first_scan = (scan, raw)  # de-skewed (and mapped) once the first motion is known
+        elif voxel_map is not None:
+            points, channels = _map_points(scan, current, twist)
+            voxel_map.insert(apply(T_map_curr, points), channels)
         previous = current
         T_map_prev = T_map_curr
     if first_scan is not None and voxel_map is not None:

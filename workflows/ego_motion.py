@@ -1,0 +1,89 @@
+"""Ego-motion between a lidar scan and a camera image, from the log's odometry on ``/tf``.
+
+A scan's points are in the lidar frame at its stamp (or, for a driver that does not de-skew, at each
+point's firing time: the ``time`` channel). A camera image is taken at its own stamp. Projecting the scan
+into the image needs the points in the lidar frame at the image's stamp: the whole scan moved by the
+odometry between the two stamps, or each point by the sweep's twist over its own time offset.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from numpy.typing import NDArray
+
+from pipeline.errors import TransformError
+from pipeline.frames import LidarFrame
+from pipeline.transforms import Mat4, TransformTree, invert, root_of, twist_of
+from stages.calibration.frame import compensate_ego_motion
+
+log = logging.getLogger(__name__)
+
+MAX_SWEEP_S = 0.5
+"""Per-point times further than this from the scan stamp are not a sweep's firing times (s)."""
+
+
+def scan_motion(tree: TransformTree | None, lidar_frame: str, scan_ns: int, camera_ns: int) -> Mat4 | None:
+    """``T_lidar(camera stamp)_lidar(scan stamp)`` from the tf tree's odometry, or None without it."""
+    if tree is None or scan_ns == camera_ns:
+        return None
+    world = root_of(tree, lidar_frame)
+    if world == lidar_frame or tree.is_static_path(world, lidar_frame):
+        return None
+    try:
+        T_world_scan = tree.lookup(world, lidar_frame, scan_ns)
+        T_world_cam = tree.lookup(world, lidar_frame, camera_ns)
+    except TransformError as err:
+        log.warning("no ego-motion compensation for the scan at %d: %s", scan_ns, err)
+        return None
+    return invert(T_world_cam) @ T_world_scan
+
+
+def sweep_motion(
+    tree: TransformTree | None, lidar_frame: str, lidar: LidarFrame, camera_ns: int
+) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+    """Per-point capture time minus the camera stamp (N,), s, and the lidar's twist over the sweep (6,):
+    velocity (m/s) and angular rate (rad/s) in the lidar frame, from the tf tree's odometry between the
+    scan's first and last point times. None for scans without a per-point time field, with one capture
+    time, with times that do not fit the stamp (more than ``MAX_SWEEP_S`` from it), or without odometry."""
+    times = lidar.channel("time")
+    if tree is None or times is None or lidar.n_points == 0:
+        return None
+    t = np.asarray(times, dtype=np.float64).ravel()
+    finite = np.isfinite(t)
+    if t.shape[0] != lidar.n_points or not finite.any():
+        return None
+    t_first, t_last = float(t[finite].min()), float(t[finite].max())
+    if t_last - t_first < 1e-3:
+        return None
+    if max(abs(t_first), abs(t_last)) > MAX_SWEEP_S:
+        log.warning("scan at %d: per-point times %.3f..%.3f s from its stamp are not a sweep; the scan moves "
+                    "by its stamp", lidar.stamp_ns, t_first, t_last)
+        return None
+    # the sweep's motion T_lidar(first)_lidar(last): scan_motion from the last point time to the first
+    T_first_last = scan_motion(tree, lidar_frame, lidar.stamp_ns + round(t_last * 1e9),
+                               lidar.stamp_ns + round(t_first * 1e9))
+    if T_first_last is None:
+        return None
+    twist = twist_of(T_first_last, t_last - t_first)
+    offsets_s = np.where(finite, t, 0.5 * (t_first + t_last)) + (lidar.stamp_ns - camera_ns) * 1e-9
+    return offsets_s, twist
+
+
+def points_at(tree: TransformTree | None, lidar: LidarFrame, camera_ns: int,
+              point_times: bool = True) -> NDArray[np.float64] | None:
+    """The scan's points (N, 3) in the lidar frame at ``camera_ns``, metres: each point moved by the sweep's
+    twist over its own time offset (``point_times`` and a usable ``time`` channel), else the whole scan
+    by the odometry between the stamps. None when the log has no odometry for it (nothing to move by)."""
+    frame_id = lidar.frame_id.lstrip("/")
+    sweep = sweep_motion(tree, frame_id, lidar, camera_ns) if point_times else None
+    if sweep is not None:
+        return compensate_ego_motion(lidar.points_xyz, point_time_offsets_s=sweep[0], twist_lidar=sweep[1])
+    T_motion = scan_motion(tree, frame_id, lidar.stamp_ns, camera_ns)
+    if T_motion is None:
+        return None
+    return compensate_ego_motion(lidar.points_xyz, T_lidar_motion=T_motion)
+
+
+__all__ = ["MAX_SWEEP_S", "points_at", "scan_motion", "sweep_motion"]
