@@ -62,6 +62,7 @@ def test_usable_times_accepts_one_sweep_only() -> None:
     assert usable_times(sweep - 0.099, 0.1)  # stamped at the sweep's end
     assert not usable_times(np.zeros(100), 0.1)  # de-skewed already (times zeroed)
     assert not usable_times(sweep + np.r_[np.zeros(99), 5.0], 0.1)  # spans 50 intervals
+    assert not usable_times(sweep - 21_933_112.3, 0.1)  # a sweep's span, another clock (PJLab rig1)
     assert not usable_times(np.r_[sweep[:-1], np.nan], 0.1)
     assert not usable_times(sweep, 0.0) and not usable_times(None, 0.1)
 
@@ -164,3 +165,25 @@ def test_already_deskewed_scans_with_zero_times_are_left_alone(
     assert not any(s.deskewed for s in steps)
     steps = run_odometry(fast_street["skewed"][0][:4], RegistrationConfig())
     assert all(s.deskewed for s in steps)
+
+
+def test_real_points_timed_by_another_clock_are_not_deskewed(shared_data: Path) -> None:
+    """PJLab rig1's points carry absolute times 21.9 million s away from their header stamps (the log was
+    re-stamped): applying them would throw the points away; they are recognised and the scans mapped as
+    recorded, as with ``deskew=False``."""
+    log = shared_data / "logs" / "pjlab_road_rig1"
+    reader = open_log(log)
+    try:
+        topic = "/top_center_lidar/points"
+        frames = [decode_pointcloud2(reader.deserialize(m), topic) for m in reader.messages([topic])]
+    finally:
+        reader.close()
+    assert abs(float(np.median(frames[0].channels["time"]))) > 1e6
+    maps = {}
+    for deskew in (True, False):
+        voxel_map = VoxelMap(0.5)
+        steps = run_odometry(frames, RegistrationConfig(voxel_size_m=0.5), voxel_map=voxel_map, deskew=deskew)
+        assert not any(s.deskewed for s in steps)
+        maps[deskew] = voxel_map.points()
+    np.testing.assert_allclose(maps[True], maps[False])
+    assert np.abs(maps[True]).max() < 300

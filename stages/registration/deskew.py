@@ -24,8 +24,9 @@ from stages.registration.pointset import PointSet
 log = logging.getLogger(__name__)
 
 MAX_SWEEP_FRACTION = 2.0
-"""Point times spanning more than this many scan intervals are not a sweep's firing times (absolute
-times taken for relative ones, a merged cloud): the scan is then not de-skewed."""
+"""Point times reaching further from the stamp than this many scan intervals are not a sweep's firing
+times (a merged cloud, or absolute times from another clock than the header's: PJLab rig1's points are
+21.9 million s from their stamps): the scan is then not de-skewed."""
 
 
 def sweep_twist(T_prev_curr: NDArray[np.floating], interval_s: float) -> NDArray[np.float64] | None:
@@ -37,15 +38,14 @@ def sweep_twist(T_prev_curr: NDArray[np.floating], interval_s: float) -> NDArray
 
 
 def usable_times(times_s: NDArray[np.floating] | None, interval_s: float) -> bool:
-    """True when ``times_s`` (point time minus stamp, s) look like one sweep's firing times: finite and
-    spanning at most ``MAX_SWEEP_FRACTION`` scan intervals (and some time at all)."""
+    """True when ``times_s`` (point time minus stamp, s) look like one sweep's firing times: finite, not all
+    equal, and none further than ``MAX_SWEEP_FRACTION`` scan intervals from the stamp."""
     if times_s is None or times_s.size == 0 or not (np.isfinite(interval_s) and interval_s > 0):
         return False
     t = np.asarray(times_s, dtype=np.float64)
     if not np.all(np.isfinite(t)):
         return False
-    span = float(t.max() - t.min())
-    return 0.0 < span <= MAX_SWEEP_FRACTION * interval_s
+    return float(t.max() - t.min()) > 0.0 and float(np.abs(t).max()) <= MAX_SWEEP_FRACTION * interval_s
 
 
 def deskew_points(points_xyz: NDArray[np.floating], times_s: NDArray[np.floating],

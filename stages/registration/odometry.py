@@ -272,10 +272,10 @@ class _Deskew:
         if not self.enabled or scan.times_s is None:
             return None
         if not usable_times(scan.times_s, interval_s):
-            span = float(np.ptp(scan.times_s)) if scan.times_s.size else 0.0
-            if span > 0 and not self._warned:  # all-zero times: a scan de-skewed by its driver
-                log.warning("scan at %d not de-skewed: its point times span %.3g s for a %.3g s scan interval",
-                            scan.stamp_ns, span, interval_s)  # fmt: skip
+            t = scan.times_s
+            if t.size and np.ptp(t) > 0 and not self._warned:  # all-equal times: de-skewed by its driver
+                log.warning("scans not de-skewed: point times %.3g..%.3g s from the stamp do not fit a %.3g s "
+                            "scan interval (first at %d)", t.min(), t.max(), interval_s, scan.stamp_ns)  # fmt: skip
                 self._warned = True
             return None
         return sweep_twist(T_prev_curr, interval_s)
