@@ -26,7 +26,7 @@ from workflows.inspect_log import inspect_log
 
 Capsys = pytest.CaptureFixture[str]
 JSON_KEYS = {"paths", "format", "start_ns", "end_ns", "topics", "lidar_topics", "camera_topics", "tf",
-             "undecodable_topics"}
+             "undecodable_topics", "lidar_scans"}
 
 
 def _json(capsys: Capsys, argv: list[str]) -> dict:
@@ -64,6 +64,9 @@ def test_json_report_of_every_format(kind: str, tmp_path: Path, capsys: Capsys) 
     assert result["tf"] == [{"parent": "base_link", "child": "lidar", "static": True},
                             {"parent": "lidar", "child": "cam_optical", "static": True}]
     assert result["undecodable_topics"] == []
+    scan = result["lidar_scans"]["/lidar/points"]
+    assert scan["points"] == 50 and scan["channels"] == []  # x, y, z only
+    assert scan["point_times"] == "none" and scan["time_range_s"] is None
 
 
 def test_human_report_lists_table_span_sensors_and_tf(tmp_path: Path, capsys: Capsys) -> None:
@@ -190,3 +193,32 @@ def test_console_script_subprocess(tmp_path: Path) -> None:
     assert missing.stderr.strip().splitlines() == [expected]
     usage = subprocess.run([script, "inspect"], capture_output=True, text=True, timeout=120)
     assert usage.returncode == 2
+
+
+@pytest.mark.parametrize("deskewed", [False, True])
+def test_lidar_point_times_are_described(deskewed: bool, tmp_path: Path, capsys: Capsys) -> None:
+    """A simulated lidar that does not de-skew carries a sweep of firing times (0..0.1 s); one that does
+    carries zeros; both are named, in the JSON and in the text."""
+    from workflows.simulator.write import SimulationOptions, simulate_log
+
+    log = tmp_path / "sim.mcap"
+    simulate_log(log, SimulationOptions(frames=2, beams=16, columns=256, width=64, height=48, deskew=deskewed))
+    scan = _json(capsys, ["inspect", str(log), "--json"])["lidar_scans"]["/lidar/points"]
+    assert "time" in scan["channels"] and scan["points"] > 1000
+    if deskewed:
+        assert scan["point_times"] == "constant" and scan["time_range_s"] == [0.0, 0.0]
+    else:
+        assert scan["point_times"] == "sweep"
+        assert scan["time_range_s"][0] == pytest.approx(0.0, abs=1e-3)
+        assert scan["time_range_s"][1] == pytest.approx(0.1, abs=2e-3)
+    assert main(["inspect", str(log)]) == 0
+    text = capsys.readouterr().out
+    assert ("used as stamped" if deskewed else "move each point by its firing time") in text
+
+
+def test_real_lidar_times_from_another_clock_are_flagged(shared_data: Path, capsys: Capsys) -> None:
+    logs = shared_data / "logs"
+    rig1 = _json(capsys, ["inspect", str(logs / "pjlab_road_rig1"), "--json"])["lidar_scans"]
+    assert rig1["/top_center_lidar/points"]["point_times"] == "foreign"  # 21.9 million s from the stamps
+    kitti = _json(capsys, ["inspect", str(logs / "kitti_2011_09_26.mcap"), "--json"])["lidar_scans"]
+    assert [s["point_times"] for s in kitti.values()] == ["none"]

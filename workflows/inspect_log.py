@@ -1,21 +1,28 @@
-"""What a log holds: topics, counts, rates, frame ids, lidar/camera topics and tf edges.
+"""What a log holds: topics, counts, rates, frame ids, lidar/camera topics, tf edges, and what the
+first scan of each lidar topic carries (its channels and per-point times).
 
 ``inspect_log`` makes one streaming pass over the raw messages (bytes only) and deserialises just
-the first message of each topic (for its ``header.frame_id``) and the ``/tf`` + ``/tf_static``
-messages (for the tf edges), so inspecting a large log costs one read of its bytes.
+the first message of each topic (for its ``header.frame_id``; a lidar's is also decoded) and the
+``/tf`` + ``/tf_static`` messages (for the tf edges), so inspecting a large log costs one read of its
+bytes.
 """
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from pipeline.errors import DecodeError
 from readers.base import LogReader
+from readers.decode.pointcloud2 import decode_pointcloud2
 from readers.frames import camera_info_topic_for
 from readers.mcap_reader import TruncationInfo
 from readers.open import truncation_of
+from workflows.ego_motion import MAX_SWEEP_S
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
@@ -53,6 +60,50 @@ class TfEdge:
     static: bool
 
 
+@dataclass(frozen=True)
+class LidarSummary:
+    """The first scan of a lidar topic.
+
+    Attributes:
+        points: valid points in it.
+        channels: its per-point channels (decoder names, ``time`` normalised to s from the stamp).
+        time_range_s: (first, last) per-point time minus the header stamp, s; None without a time field.
+        point_times: ``none`` (no time field), ``constant`` (all equal: a scan the driver de-skewed),
+            ``sweep`` (within ``MAX_SWEEP_S`` of the stamp: calibration and mapping move each point by
+            it) or ``foreign`` (further: another clock than the header's; not used).
+    """
+
+    points: int
+    channels: tuple[str, ...]
+    time_range_s: tuple[float, float] | None
+    point_times: str
+
+    def describe(self) -> str:
+        if self.time_range_s is None:
+            times = "no per-point times"
+        else:
+            t0, t1 = self.time_range_s
+            meaning = {"constant": "all equal (a de-skewed scan): used as stamped",
+                       "sweep": "used to move each point by its firing time",
+                       "foreign": "not a sweep (another clock?): not used"}[self.point_times]  # fmt: skip
+            times = f"point times {t0:.6g}..{t1:.6g} s from the stamp, {meaning}"
+        return f"{self.points} points; channels {', '.join(self.channels) or 'none'}; {times}"
+
+
+def lidar_summary(msg: Any, topic: str) -> LidarSummary:
+    """``LidarSummary`` of a decoded PointCloud2 message (DecodeError when it cannot be decoded)."""
+    frame = decode_pointcloud2(msg, topic)
+    times = frame.channels.get("time")
+    finite = None if times is None else np.asarray(times, dtype=np.float64)
+    if finite is not None:
+        finite = finite[np.isfinite(finite)]
+    if finite is None or finite.size == 0:
+        return LidarSummary(frame.n_points, tuple(frame.channels), None, "none")
+    t0, t1 = float(finite.min()), float(finite.max())
+    kind = "constant" if t1 == t0 else "sweep" if max(abs(t0), abs(t1)) <= MAX_SWEEP_S else "foreign"
+    return LidarSummary(frame.n_points, tuple(frame.channels), (t0, t1), kind)
+
+
 @dataclass
 class InspectReport:
     """The result of ``fleetcal inspect``.
@@ -68,6 +119,7 @@ class InspectReport:
         tf: unique tf edges from ``/tf`` and ``/tf_static``.
         undecodable_topics: topics whose type the log cannot decode.
         truncation: what was lost when the log is damaged, else None.
+        lidar_scans: lidar topic -> its first scan's ``LidarSummary`` (where it decodes).
     """
 
     paths: list[str]
@@ -82,6 +134,7 @@ class InspectReport:
     undecodable_topics: list[str]
     truncation: TruncationInfo | None = None
     message_count: int = field(default=0)
+    lidar_scans: dict[str, LidarSummary] = field(default_factory=dict)
 
     @property
     def duration_s(self) -> float:
@@ -109,6 +162,12 @@ class InspectReport:
             "camera_topics": list(self.camera_topics),
             "tf": [{"parent": e.parent, "child": e.child, "static": e.static} for e in self.tf],
             "undecodable_topics": list(self.undecodable_topics),
+            "lidar_scans": {
+                topic: {"points": v.points, "channels": list(v.channels),
+                        "time_range_s": None if v.time_range_s is None else list(v.time_range_s),
+                        "point_times": v.point_times}  # fmt: skip
+                for topic, v in self.lidar_scans.items()
+            },
         }
 
 
@@ -132,6 +191,7 @@ def inspect_log(reader: LogReader) -> InspectReport:
     infos = reader.topics
     stats = {name: _TopicStats() for name in infos}
     edges: dict[tuple[str, str, bool], None] = {}
+    scans: dict[str, LidarSummary] = {}
     total = 0
     for raw in reader.messages():
         total += 1
@@ -152,6 +212,9 @@ def inspect_log(reader: LogReader) -> InspectReport:
             continue
         if topic.count == 1:
             topic.frame_id = _frame_id(msg)
+            if info is not None and info.msgtype == POINTCLOUD2:
+                with contextlib.suppress(DecodeError):  # listed anyway; calibrate / map say what is wrong
+                    scans[raw.topic] = lidar_summary(msg, raw.topic)
         if is_tf:
             for transform in getattr(msg, "transforms", []):
                 parent = transform.header.frame_id.lstrip("/")
@@ -196,6 +259,7 @@ def inspect_log(reader: LogReader) -> InspectReport:
         undecodable_topics=[t.name for t in summaries if not t.decodable],
         truncation=truncation_of(reader),
         message_count=total,
+        lidar_scans=scans,
     )
 
 
@@ -227,6 +291,7 @@ def format_report(report: InspectReport) -> str:
         lines.append("  ".join(cells).rstrip())
     lines.append("")
     lines.append(f"lidar topics: {', '.join(report.lidar_topics) or 'none'}")
+    lines.extend(f"  {topic}: {scan.describe()}" for topic, scan in report.lidar_scans.items())
     cameras = [f"{c} (info: {report.camera_info_topics[c]})" for c in report.camera_topics]
     lines.append(f"camera topics: {', '.join(cameras) or 'none'}")
     if report.tf:
