@@ -40,6 +40,15 @@ def scan_motion(tree: TransformTree | None, lidar_frame: str, scan_ns: int, came
     return invert(T_world_cam) @ T_world_scan
 
 
+def point_time_range(times: NDArray[np.generic] | None) -> tuple[float, float] | None:
+    """(first, last) of the finite per-point times (s from the scan stamp); None without any."""
+    if times is None:
+        return None
+    t = np.asarray(times, dtype=np.float64).ravel()
+    t = t[np.isfinite(t)]
+    return (float(t.min()), float(t.max())) if t.size else None
+
+
 def sweep_motion(
     tree: TransformTree | None, lidar_frame: str, lidar: LidarFrame, camera_ns: int
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
@@ -51,10 +60,10 @@ def sweep_motion(
     if tree is None or times is None or lidar.n_points == 0:
         return None
     t = np.asarray(times, dtype=np.float64).ravel()
-    finite = np.isfinite(t)
-    if t.shape[0] != lidar.n_points or not finite.any():
+    span = point_time_range(t)
+    if t.shape[0] != lidar.n_points or span is None:
         return None
-    t_first, t_last = float(t[finite].min()), float(t[finite].max())
+    t_first, t_last = span
     if t_last - t_first < 1e-3:
         return None
     if max(abs(t_first), abs(t_last)) > MAX_SWEEP_S:
@@ -67,7 +76,7 @@ def sweep_motion(
     if T_first_last is None:
         return None
     twist = twist_of(T_first_last, t_last - t_first)
-    offsets_s = np.where(finite, t, 0.5 * (t_first + t_last)) + (lidar.stamp_ns - camera_ns) * 1e-9
+    offsets_s = np.where(np.isfinite(t), t, 0.5 * (t_first + t_last)) + (lidar.stamp_ns - camera_ns) * 1e-9
     return offsets_s, twist
 
 
@@ -86,4 +95,4 @@ def points_at(tree: TransformTree | None, lidar: LidarFrame, camera_ns: int,
     return compensate_ego_motion(lidar.points_xyz, T_lidar_motion=T_motion)
 
 
-__all__ = ["MAX_SWEEP_S", "points_at", "scan_motion", "sweep_motion"]
+__all__ = ["MAX_SWEEP_S", "point_time_range", "points_at", "scan_motion", "sweep_motion"]

@@ -14,15 +14,13 @@ import datetime as dt
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
-
 from pipeline.errors import DecodeError
 from readers.base import LogReader
 from readers.decode.pointcloud2 import decode_pointcloud2
 from readers.frames import camera_info_topic_for
 from readers.mcap_reader import TruncationInfo
 from readers.open import truncation_of
-from workflows.ego_motion import MAX_SWEEP_S
+from workflows.ego_motion import MAX_SWEEP_S, point_time_range
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
@@ -93,13 +91,10 @@ class LidarSummary:
 def lidar_summary(msg: Any, topic: str) -> LidarSummary:
     """``LidarSummary`` of a decoded PointCloud2 message (DecodeError when it cannot be decoded)."""
     frame = decode_pointcloud2(msg, topic)
-    times = frame.channels.get("time")
-    finite = None if times is None else np.asarray(times, dtype=np.float64)
-    if finite is not None:
-        finite = finite[np.isfinite(finite)]
-    if finite is None or finite.size == 0:
+    span = point_time_range(frame.channels.get("time"))
+    if span is None:
         return LidarSummary(frame.n_points, tuple(frame.channels), None, "none")
-    t0, t1 = float(finite.min()), float(finite.max())
+    t0, t1 = span
     kind = "constant" if t1 == t0 else "sweep" if max(abs(t0), abs(t1)) <= MAX_SWEEP_S else "foreign"
     return LidarSummary(frame.n_points, tuple(frame.channels), (t0, t1), kind)
 

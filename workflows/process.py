@@ -146,7 +146,7 @@ def colorize_scan(frame: LidarFrame, source: ColorSource) -> LidarFrame:
         camera = None if image is None else with_model(image.camera, source.camera_model)
         if image is not None and camera is not None:
             views.append((image.image, camera, np.array(T_rows)))
-            moved.append(points_at(tree, frame, image.stamp_ns, source.point_times) if tree is not None else None)
+            moved.append(points_at(tree, frame, image.stamp_ns, source.point_times))
     points = np.asarray(frame.points_xyz, dtype=np.float64)
     if views:
         rgb, seen = colorize(points, views, points_per_view=moved)

@@ -12,7 +12,6 @@ the rotation part, ``R_i C_i R_i^T``. The twist comes from the motion between tw
 from __future__ import annotations
 
 import dataclasses
-import logging
 
 import numpy as np
 from numpy.typing import NDArray
@@ -20,8 +19,6 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.transforms import screw_apply, twist_of
 from stages.registration.pointset import PointSet
-
-log = logging.getLogger(__name__)
 
 MAX_SWEEP_FRACTION = 2.0
 """Point times reaching further from the stamp than this many scan intervals are not a sweep's firing

@@ -34,9 +34,9 @@ from stages.registration.gicp import RegistrationConfig, register
 from stages.registration.pointset import PointSet, pointset_from_frame, prepare_pointset
 from stages.registration.voxel import voxel_downsample, voxel_keys
 
-MAP_CHANNELS = ("intensity", "r", "g", "b")
 log = logging.getLogger(__name__)
 
+MAP_CHANNELS = ("intensity", "r", "g", "b")
 COLOR_CHANNELS = ("r", "g", "b")
 ODOMETRY_MODES = ("scan_to_map", "scan_to_scan")
 OdometryMode = Literal["scan_to_map", "scan_to_scan"]
@@ -350,9 +350,10 @@ def run_odometry(
     T_map_prev = np.eye(4)
     velocity = np.eye(4)
 
-    def registered(source: PointSet, guess: NDArray[np.float64],
-                   settings: RegistrationConfig = config) -> tuple[Any, NDArray[np.float64]]:
-        """Registration of ``source`` from the guess (motion since the previous scan) and its map pose."""
+    def registered(source: PointSet, guess: NDArray[np.float64], settings: RegistrationConfig = config
+                   ) -> tuple[Any, NDArray[np.float64], NDArray[np.float64]]:
+        """Registration of ``source`` from the guess (motion since the previous scan): the result, the map
+        pose and the motion since the previous scan."""
         assert previous is not None
         if local_map is not None:
             result = register(source, local_map.target(), T_map_prev @ guess, settings)
@@ -360,7 +361,13 @@ def run_odometry(
         else:
             result = register(source, previous, guess, settings)
             T_map = T_map_prev @ (result.T_target_source if result.n_correspondences > 0 else guess)
-        return result, _orthonormalize(T_map)
+        T_map = _orthonormalize(T_map)
+        return result, T_map, _orthonormalize(invert(T_map_prev) @ T_map)
+
+    def registered_deskewed(scan: PointSet, motion: NDArray[np.float64], interval_s: float
+                            ) -> tuple[Any, NDArray[np.float64], NDArray[np.float64]]:
+        """``registered`` of ``scan`` de-skewed with ``motion`` (where it can be), from ``motion``."""
+        return registered(skew.apply(scan, skew.twist(scan, motion, interval_s)), motion)
 
     for index, scan in enumerate(scans):
         raw = _as_pointset(scan, config)
@@ -381,14 +388,10 @@ def run_odometry(
                 guess = velocity
             interval_s = (raw.stamp_ns - previous.stamp_ns) * 1e-9
             if coarse is not None and index == 1:
-                _, T_map_coarse = registered(raw, guess, coarse)
-                guess = _orthonormalize(invert(T_map_prev) @ T_map_coarse)
-            result, T_map_curr = registered(skew.apply(raw, skew.twist(raw, guess, interval_s)), guess)
-            T_prev_curr = _orthonormalize(invert(T_map_prev) @ T_map_curr)
-            twist = skew.twist(raw, T_prev_curr, interval_s)
-            if twist is not None:  # again, de-skewed by the estimate
-                result, T_map_curr = registered(skew.apply(raw, twist), T_prev_curr)
-                T_prev_curr = _orthonormalize(invert(T_map_prev) @ T_map_curr)
+                _, _, guess = registered(raw, guess, coarse)
+            result, T_map_curr, T_prev_curr = registered_deskewed(raw, guess, interval_s)
+            if skew.twist(raw, T_prev_curr, interval_s) is not None:  # again, de-skewed by the estimate
+                result, T_map_curr, T_prev_curr = registered_deskewed(raw, T_prev_curr, interval_s)
             if first_scan is not None:
                 # the first scan, de-skewed with the first motion estimate, replaces its skewed self
                 first_twist = skew.twist(first_scan[1], T_prev_curr, interval_s)
@@ -398,9 +401,7 @@ def run_odometry(
                         local_map = LocalMap(config, local_map_keyframes)
                         local_map.add(previous, T_map_prev)
                     steps[0].deskewed = True
-                    twist = skew.twist(raw, T_prev_curr, interval_s)
-                    result, T_map_curr = registered(skew.apply(raw, twist), T_prev_curr)
-                    T_prev_curr = _orthonormalize(invert(T_map_prev) @ T_map_curr)
+                    result, T_map_curr, T_prev_curr = registered_deskewed(raw, T_prev_curr, interval_s)
                 if voxel_map is not None:
                     points, channels = _map_points(first_scan[0], first_scan[1], first_twist)
                     voxel_map.insert(apply(T_map_prev, points), channels)
