@@ -185,6 +185,15 @@ class LogOutcome:
         """The manifest row (``MANIFEST_SCHEMA`` columns)."""
         return {name: getattr(self, name) for name in MANIFEST_SCHEMA.names}
 
+    def set_pairs(self, calibrations: Sequence[Mapping[str, Any]]) -> LogOutcome:
+        """Fill the per-pair lists from ``process`` calibration summaries (``result.json``); returns self."""
+        self.camera_topics = [str(c.get("camera_topic", "")) for c in calibrations]
+        self.verdicts = [str(c.get("verdict", "")) for c in calibrations]
+        self.scores = [float(c.get("score", float("nan"))) for c in calibrations]
+        self.translations_held = [bool(c.get("translation_held", False)) for c in calibrations]
+        self.translations_weak = [_weak_axes(c) for c in calibrations]
+        return self
+
     @classmethod
     def from_row(cls, row: Mapping[str, Any]) -> LogOutcome:
         return cls(
@@ -409,11 +418,7 @@ def run_log(job: LogJob, config: Config, process_fn: ProcessFn = process_with_fl
     else:
         outcome.status = "ok"
         outcome.log_start_ns = summary.log_start_ns
-        outcome.camera_topics = [str(c.get("camera_topic", "")) for c in summary.calibrations]
-        outcome.verdicts = [str(c.get("verdict", "")) for c in summary.calibrations]
-        outcome.scores = [float(c.get("score", float("nan"))) for c in summary.calibrations]
-        outcome.translations_held = [bool(c.get("translation_held", False)) for c in summary.calibrations]
-        outcome.translations_weak = [_weak_axes(c) for c in summary.calibrations]
+        outcome.set_pairs(summary.calibrations)
         outcome.map_points = summary.map_points
         outcome.stage_times_s = dict(summary.stage_times_s)
     outcome.finished_ns = time.time_ns()
@@ -581,13 +586,8 @@ def _outcome_from_result_file(job: LogJob) -> LogOutcome | None:
         status="ok",
         runtime_s=result.runtime_s,
         log_start_ns=result.log_start_ns,
-        camera_topics=[str(c.get("camera_topic", "")) for c in result.calibrations],
-        verdicts=[str(c.get("verdict", "")) for c in result.calibrations],
-        scores=[float(c.get("score", float("nan"))) for c in result.calibrations],
-        translations_held=[bool(c.get("translation_held", False)) for c in result.calibrations],
-        translations_weak=[_weak_axes(c) for c in result.calibrations],
         map_points=int(map_points) if map_points is not None else None,
-    )
+    ).set_pairs(result.calibrations)
 
 
 # --------------------------------------------------------------------------------------- tables
