@@ -15,14 +15,11 @@ from numpy.typing import NDArray
 
 from pipeline.errors import TransformError
 from pipeline.frames import LidarFrame
+from pipeline.point_times import classify_point_times
 from pipeline.transforms import Mat4, TransformTree, invert, root_of, twist_of
 from stages.calibration.frame import compensate_ego_motion
 
 log = logging.getLogger(__name__)
-
-MAX_SWEEP_S = 0.5
-"""Per-point times further than this from the scan stamp are not a sweep's firing times (s)."""
-
 
 def scan_motion(tree: TransformTree | None, lidar_frame: str, scan_ns: int, camera_ns: int) -> Mat4 | None:
     """``T_lidar(camera stamp)_lidar(scan stamp)`` from the tf tree's odometry, or None without it."""
@@ -40,36 +37,26 @@ def scan_motion(tree: TransformTree | None, lidar_frame: str, scan_ns: int, came
     return invert(T_world_cam) @ T_world_scan
 
 
-def point_time_range(times: NDArray[np.generic] | None) -> tuple[float, float] | None:
-    """(first, last) of the finite per-point times (s from the scan stamp); None without any."""
-    if times is None:
-        return None
-    t = np.asarray(times, dtype=np.float64).ravel()
-    t = t[np.isfinite(t)]
-    return (float(t.min()), float(t.max())) if t.size else None
-
-
 def sweep_motion(
     tree: TransformTree | None, lidar_frame: str, lidar: LidarFrame, camera_ns: int
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
     """Per-point capture time minus the camera stamp (N,), s, and the lidar's twist over the sweep (6,):
     velocity (m/s) and angular rate (rad/s) in the lidar frame, from the tf tree's odometry between the
-    scan's first and last point times. None for scans without a per-point time field, with one capture
-    time, with times that do not fit the stamp (more than ``MAX_SWEEP_S`` from it), or without odometry."""
+    scan's first and last point times. None unless the scan's times are a sweep's
+    (``pipeline.point_times``; NaN times count as the sweep's middle), or without odometry."""
     times = lidar.channel("time")
     if tree is None or times is None or lidar.n_points == 0:
         return None
     t = np.asarray(times, dtype=np.float64).ravel()
-    span = point_time_range(t)
-    if t.shape[0] != lidar.n_points or span is None:
+    if t.shape[0] != lidar.n_points:
         return None
-    t_first, t_last = span
-    if t_last - t_first < 1e-3:
-        return None
-    if max(abs(t_first), abs(t_last)) > MAX_SWEEP_S:
+    kind = classify_point_times(t)
+    if kind.kind == "foreign":
         log.warning("scan at %d: per-point times %.3f..%.3f s from its stamp are not a sweep; the scan moves "
-                    "by its stamp", lidar.stamp_ns, t_first, t_last)
+                    "by its stamp", lidar.stamp_ns, kind.first_s, kind.last_s)
+    if not kind.is_sweep:
         return None
+    t_first, t_last = kind.first_s, kind.last_s
     # the sweep's motion T_lidar(first)_lidar(last): scan_motion from the last point time to the first
     T_first_last = scan_motion(tree, lidar_frame, lidar.stamp_ns + round(t_last * 1e9),
                                lidar.stamp_ns + round(t_first * 1e9))
@@ -95,4 +82,4 @@ def points_at(tree: TransformTree | None, lidar: LidarFrame, camera_ns: int,
     return compensate_ego_motion(lidar.points_xyz, T_lidar_motion=T_motion)
 
 
-__all__ = ["MAX_SWEEP_S", "point_time_range", "points_at", "scan_motion", "sweep_motion"]
+__all__ = ["points_at", "scan_motion", "sweep_motion"]

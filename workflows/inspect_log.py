@@ -15,12 +15,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from pipeline.errors import DecodeError
+from pipeline.point_times import classify_point_times
 from readers.base import LogReader
 from readers.decode.pointcloud2 import decode_pointcloud2
 from readers.frames import camera_info_topic_for
 from readers.mcap_reader import TruncationInfo
 from readers.open import truncation_of
-from workflows.ego_motion import MAX_SWEEP_S, point_time_range
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
@@ -66,9 +66,10 @@ class LidarSummary:
         points: valid points in it.
         channels: its per-point channels (decoder names, ``time`` normalised to s from the stamp).
         time_range_s: (first, last) per-point time minus the header stamp, s; None without a time field.
-        point_times: ``none`` (no time field), ``constant`` (all equal: a scan the driver de-skewed),
-            ``sweep`` (within ``MAX_SWEEP_S`` of the stamp: calibration and mapping move each point by
-            it) or ``foreign`` (further: another clock than the header's; not used).
+        point_times: ``none`` (no time field), ``constant`` (within 1 ms: a scan the driver de-skewed),
+            ``sweep`` (within ``point_times.MAX_SWEEP_S`` of the stamp: calibration and mapping move each point by
+            it) or ``foreign`` (further: another clock than the header's; not used); see
+            ``pipeline.point_times``.
     """
 
     points: int
@@ -81,7 +82,7 @@ class LidarSummary:
             times = "no per-point times"
         else:
             t0, t1 = self.time_range_s
-            meaning = {"constant": "all equal (a de-skewed scan): used as stamped",
+            meaning = {"constant": "one capture time (a de-skewed scan): used as stamped",
                        "sweep": "used to move each point by its firing time",
                        "foreign": "not a sweep (another clock?): not used"}[self.point_times]  # fmt: skip
             times = f"point times {t0:.6g}..{t1:.6g} s from the stamp, {meaning}"
@@ -91,12 +92,9 @@ class LidarSummary:
 def lidar_summary(msg: Any, topic: str) -> LidarSummary:
     """``LidarSummary`` of a decoded PointCloud2 message (DecodeError when it cannot be decoded)."""
     frame = decode_pointcloud2(msg, topic)
-    span = point_time_range(frame.channels.get("time"))
-    if span is None:
-        return LidarSummary(frame.n_points, tuple(frame.channels), None, "none")
-    t0, t1 = span
-    kind = "constant" if t1 == t0 else "sweep" if max(abs(t0), abs(t1)) <= MAX_SWEEP_S else "foreign"
-    return LidarSummary(frame.n_points, tuple(frame.channels), (t0, t1), kind)
+    times = classify_point_times(frame.channels.get("time"))
+    span = None if times.kind == "none" else (times.first_s, times.last_s)
+    return LidarSummary(frame.n_points, tuple(frame.channels), span, times.kind)
 
 
 @dataclass

@@ -17,13 +17,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from pipeline.point_times import classify_point_times
 from pipeline.transforms import screw_apply, twist_of
 from stages.registration.pointset import PointSet
-
-MAX_SWEEP_FRACTION = 2.0
-"""Point times reaching further from the stamp than this many scan intervals are not a sweep's firing
-times (a merged cloud, or absolute times from another clock than the header's: PJLab rig1's points are
-21.9 million s from their stamps): the scan is then not de-skewed."""
 
 
 def sweep_twist(T_prev_curr: NDArray[np.floating], interval_s: float) -> NDArray[np.float64] | None:
@@ -35,14 +31,12 @@ def sweep_twist(T_prev_curr: NDArray[np.floating], interval_s: float) -> NDArray
 
 
 def usable_times(times_s: NDArray[np.floating] | None, interval_s: float) -> bool:
-    """True when ``times_s`` (point time minus stamp, s) look like one sweep's firing times: finite, not all
-    equal, and none further than ``MAX_SWEEP_FRACTION`` scan intervals from the stamp."""
-    if times_s is None or times_s.size == 0 or not (np.isfinite(interval_s) and interval_s > 0):
+    """True when ``times_s`` (point time minus stamp, s) are one sweep's firing times
+    (``pipeline.point_times``, with the scan interval known), every one finite."""
+    if not (np.isfinite(interval_s) and interval_s > 0):
         return False
-    t = np.asarray(times_s, dtype=np.float64)
-    if not np.all(np.isfinite(t)):
-        return False
-    return float(t.max() - t.min()) > 0.0 and float(np.abs(t).max()) <= MAX_SWEEP_FRACTION * interval_s
+    times = classify_point_times(times_s, interval_s)
+    return times.is_sweep and times.all_finite
 
 
 def deskew_points(points_xyz: NDArray[np.floating], times_s: NDArray[np.floating],
@@ -63,4 +57,4 @@ def deskew_pointset(scan: PointSet, twist: NDArray[np.floating]) -> PointSet:
     return dataclasses.replace(scan, points_xyz=np.ascontiguousarray(points), covariances=covariances)
 
 
-__all__ = ["MAX_SWEEP_FRACTION", "deskew_points", "deskew_pointset", "sweep_twist", "usable_times"]
+__all__ = ["deskew_points", "deskew_pointset", "sweep_twist", "usable_times"]

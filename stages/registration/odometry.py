@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 
 from pipeline.errors import ConfigError, InputError
 from pipeline.frames import LidarFrame
+from pipeline.point_times import classify_point_times
 from pipeline.transforms import apply, invert, rotation_error_deg, translation_error_m
 from stages.registration.deskew import deskew_points, deskew_pointset, sweep_twist, usable_times
 from stages.registration.gicp import RegistrationConfig, register
@@ -272,10 +273,11 @@ class _Deskew:
         if not self.enabled or scan.times_s is None:
             return None
         if not usable_times(scan.times_s, interval_s):
-            t = scan.times_s
-            if t.size and np.ptp(t) > 0 and not self._warned:  # all-equal times: de-skewed by its driver
+            times = classify_point_times(scan.times_s, interval_s)
+            if times.kind == "foreign" and not self._warned:  # constant times: de-skewed by its driver
                 log.warning("scans not de-skewed: point times %.3g..%.3g s from the stamp do not fit a %.3g s "
-                            "scan interval (first at %d)", t.min(), t.max(), interval_s, scan.stamp_ns)  # fmt: skip
+                            "scan interval (first at %d)", times.first_s, times.last_s, interval_s,
+                            scan.stamp_ns)
                 self._warned = True
             return None
         return sweep_twist(T_prev_curr, interval_s)
