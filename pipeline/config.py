@@ -122,8 +122,9 @@ class CalibrationConfig:
             sphere by evidence over the real logs and the simulator (3 repeats, from the logs' tf;
             range alone in brackets): KITTI 0.133 deg / 7.2 cm (0.142 / 8.0), PJLab rig1 0.186 / 27
             (6.69 / 29), simulated street 640x360 0.545 / 16 (3.93 / 30), nuScenes joint 1.52 / 26
-            (0.37 / 22); with the lidar viewpoint, which ``gradient_viewpoint = "auto"`` picks for
-            its sparse rings, nuScenes joint 0.53 deg (range 0.51). Runtime about 2x that of one feature.
+            (0.37 / 22); with the lidar viewpoint (the ``auto`` default since stop 24), nuScenes joint
+            0.53 deg (range 0.51). Not re-chosen with the lidar viewpoint on every log. Runtime about 2x
+            that of one feature.
         frames: lidar/camera pairs used.
         particles: particle swarm size.
         iterations: particle swarm iterations.
@@ -152,9 +153,8 @@ class CalibrationConfig:
         occlusion_filter: drop lidar points hidden from the camera at the initial guess (z-buffer).
         gradient_viewpoint: where lidar gradients are taken: ``camera`` (paper: sphere at the camera at
             the initial guess), ``lidar`` (the lidar's own sphere, edge directions carried into the
-            camera's view) or ``auto`` (default: camera while the box is within 5 deg / 0.5 m,
-            lidar for wider boxes or rings too sparse for the camera sphere); evidence in
-            ``stages.calibration.config.CalibrationConfig``.
+            camera's view) or ``auto`` (default: lidar, the more robust from drifted starts); evidence in
+            ``stages.calibration.config.CalibrationConfig`` and ``benchmarks/bench_starts.py``.
         gradient_fit: ``paper`` (Algorithm 1), ``lsq`` (least-squares gradient over the neighbours) or
             ``auto`` (lsq on the lidar's sphere, paper on the camera's).
         gradient_neighbours: ``angle`` (paper), ``sampling`` (neighbours across a sparse lidar's rings) or

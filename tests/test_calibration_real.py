@@ -88,24 +88,38 @@ def errors(T: NDArray[np.float64], T_true: NDArray[np.float64]) -> tuple[float, 
 
 
 def test_kitti_default_settings_from_log_tf() -> None:
-    """The workflow's defaults (range+normals, camera sphere in the 5 deg / 0.5 m box, 3 seeded
-    repeats): measured 0.133 deg / 7.2 cm (``--gradient-viewpoint lidar``: 0.189 / 3.7). Its error lies
-    mostly along the camera's x (6.9 cm), the sideways shift that two street scenes fix least well: the
-    translation profile names x (ratio 0.15) and z (0.43), not y (2.0)."""
+    """The workflow's defaults (range+normals, the lidar's own sphere, 5 deg / 0.5 m box, 3 seeded
+    repeats): measured 0.176 deg / 3.8 cm (the paper's camera sphere: 0.133 / 7.2 from this start, but
+    0.22-0.57 deg / 10-30 cm from five other starts as far off, where the lidar's gives 0.14-0.24 deg /
+    3-5 cm: ``benchmarks/bench_starts.py``). Two street scenes fix the camera's y (height) firmly."""
     log_path("kitti_2011_09_26.mcap")
     problem = load_real_frames("kitti_2011_09_26.mcap")
     assert len(problem.frames) == 2
     rot0, trans0 = errors(problem.T_init, problem.T_true)
     assert rot0 > 1.5 and trans0 > 0.1  # the log's tf is the drifted calibration
     result = calibrate(problem.frames, problem.T_init, solver_config(Config()))
-    assert result.gradient_viewpoint == "camera"
+    assert result.gradient_viewpoint == "lidar"
     rot, trans = errors(result.T_camera_lidar, problem.T_true)
     assert rot <= 0.3, f"rotation error {rot:.3f} deg"
     assert trans <= 0.10, f"translation error {trans:.3f} m"
     assert result.score > result.initial_score
-    assert result.verdict == "recalibrated"
-    assert "x" in result.weak_translation_axes and "y" not in result.weak_translation_axes, result.translation_profile
+    assert result.verdict == "recalibrated", result.verdict_reason
+    assert "y" not in result.weak_translation_axes, result.translation_profile
     assert result.runtime_s < 60
+
+
+@pytest.mark.slow
+def test_kitti_from_drifted_starts_stays_within_bounds() -> None:
+    """A fleet's logs each drift their own way: from three random starts 2 deg / 12 cm off (seeds of
+    ``bench_starts.py``), defaults. Measured 0.14-0.19 deg / 3-5 cm; the camera sphere (the default
+    until stop 24) gave 0.35 / 14, 0.57 / 24 and 0.24 / 12."""
+    log_path("kitti_2011_09_26.mcap")
+    problem = load_real_frames("kitti_2011_09_26.mcap")
+    config = solver_config(Config())
+    for seed in (1001, 1002, 1003):
+        result = calibrate(problem.frames, perturb(problem.T_true, 2.0, 0.12, seed=seed), config)
+        rot, trans = errors(result.T_camera_lidar, problem.T_true)
+        assert rot <= 0.3 and trans <= 0.10, f"start {seed}: {rot:.3f} deg / {trans:.3f} m"
 
 
 @pytest.mark.slow
@@ -179,26 +193,31 @@ def test_kitti_search_box_away_from_the_scan_is_a_clear_error() -> None:
 
 @pytest.mark.slow
 def test_pjlab_two_frames_with_distortion() -> None:
-    """Workflow defaults. Estimating 6 DoF (``translation = "estimate"``): 0.172 deg / 27.3 cm, ``suspect``:
-    none of the 6 seeded runs confirms another (spread 3.3 deg / 64 cm). The error lies mostly along the
-    optical axis (z -23 cm, x -13 cm); each frame alone lands 63-66 cm off, and with no return nearer than
-    ~4 m the translation is weakly observed. ``auto`` then holds the translation at the log's (11.9 cm
-    off) and the rotation-only runs confirm one another: measured 0.238 deg / 12.1 cm, ``recalibrated``.
-    The issue's 15 cm is met by not moving the translation, not by estimating it."""
+    """Workflow defaults, no return nearer than ~4 m: the translation is weakly observed. From the log's tf
+    the seeded 6-DoF runs disagree, so ``auto`` holds the translation at the log's (11.9 cm off) and the
+    rotation-only runs confirm one another: measured 0.182 deg / 12.1 cm, but ``suspect``, since their
+    rotation lies 0.79 deg from the best 6-DoF run's. (The camera sphere, the default until stop 24: 0.238
+    deg / 12.1 cm, ``recalibrated``; from 5 other starts as far off it gave 0.27-0.75 deg.) The issue's 15 cm
+    is met by not moving the translation, not by estimating it. From a start 2 deg / 11 cm off on another
+    axis the 6-DoF runs agree on 0.77 deg / 34 cm, having moved the translation 34 cm along axes the
+    profile names weak: ``suspect`` by ``weak_move_max_m`` (``recalibrated`` without that rule)."""
     log_path("pjlab_road_rig1")
     problem = load_real_frames("pjlab_road_rig1")
     assert len(problem.frames) == 2
     assert np.any(problem.frames[0].camera.D)
     config = solver_config(Config())
-    free = calibrate(problem.frames, problem.T_init, replace(config, translation="estimate"))
-    assert free.verdict == "suspect", "a 6-DoF estimate no other run confirms"
     result = calibrate(problem.frames, problem.T_init, config)
     rot, trans = errors(result.T_camera_lidar, problem.T_true)
-    assert result.translation_held and result.verdict == "recalibrated"
+    assert result.translation_held and result.verdict == "suspect"
+    assert "with the translation held they agree" in result.verdict_reason
     np.testing.assert_allclose(np.linalg.inv(result.T_camera_lidar)[:3, 3],
                                np.linalg.inv(problem.T_init)[:3, 3], atol=1e-9)
     assert rot <= 0.5, f"rotation error {rot:.3f} deg"
     assert trans <= 0.15, f"translation error {trans:.3f} m"
+    moved = calibrate(problem.frames, perturb(problem.T_true, 2.0, 0.12, seed=1001), config)
+    rot, trans = errors(moved.T_camera_lidar, problem.T_true)
+    assert not moved.translation_held and trans > 0.15
+    assert moved.verdict == "suspect" and "the log fixes weakly" in moved.verdict_reason, moved.verdict_reason
 
 
 @pytest.mark.slow
@@ -220,8 +239,8 @@ def test_pjlab_rig2_single_raw_frame_of_another_rig() -> None:
 
 @pytest.mark.slow
 def test_nuscenes_six_cameras_joint_with_ego_motion() -> None:
-    """Workflow defaults. The 32-beam lidar's points have about one of their 8 nearest sphere neighbours
-    on another ring, so ``auto`` takes the lidar viewpoint with neighbours across rings, and its rings
+    """Workflow defaults (the lidar's own sphere, neighbours across rings). The 32-beam lidar's points have
+    about one of their 8 nearest sphere neighbours on another ring, and its rings
     (1.33 deg, 29 px apart in these images) turn on the term smoothed across them (sigma 9.8 px):
     measured 0.58 deg / 31 cm (without that term 0.53 / 37; range alone 0.51; the paper's camera
     sphere: 1.52, range 0.37). In a wide box the rings also leave exploration off (on: 0.86 deg / 32 cm,
@@ -230,8 +249,7 @@ def test_nuscenes_six_cameras_joint_with_ego_motion() -> None:
     problem = load_real_frames("nuscenes_n015.bag", cameras=6, ego_motion=True)
     assert len(problem.frames) == 6
     config = solver_config(Config())
-    assert config.viewpoint == "camera"  # by the box alone
-    assert resolve_auto_rules(problem.frames, problem.T_init, config).viewpoint == "lidar"  # by the rings
+    assert resolve_auto_rules(problem.frames, problem.T_init, config).viewpoint == "lidar"
     wide = replace(config, search_deg=10.0, search_m=1.0)
     assert wide.explores and not resolve_auto_rules(problem.frames, problem.T_init, wide).explores
     result = calibrate(problem.frames, problem.T_init, config)
@@ -241,11 +259,10 @@ def test_nuscenes_six_cameras_joint_with_ego_motion() -> None:
     assert rot <= 0.6, f"rotation error {rot:.3f} deg"
 
 
-def test_dense_rings_keep_the_camera_viewpoint() -> None:
-    """KITTI's 64 beams give about 3 of 8 sphere neighbours on other rings: ``auto`` keeps the paper's
-    camera sphere in the default box, and exploration in a wide one."""
+def test_dense_rings_keep_exploring() -> None:
+    """KITTI's 64 beams give about 3 of 8 sphere neighbours on other rings: a wide box keeps exploring
+    (a sparse lidar's does not, above)."""
     log_path("kitti_2011_09_26.mcap")
     problem = load_real_frames("kitti_2011_09_26.mcap")
-    assert resolve_auto_rules(problem.frames, problem.T_init, solver_config(Config())).viewpoint == "camera"
     wide = replace(solver_config(Config()), search_deg=10.0, search_m=1.0)
     assert resolve_auto_rules(problem.frames, problem.T_init, wide).explores  # dense rings keep exploring

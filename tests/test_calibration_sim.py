@@ -199,12 +199,18 @@ def test_motion_during_the_sweep_is_compensated_point_by_point(sim_dir: Path) ->
 # truth (e.g. 0.680 vs 0.544): the objective is wrong, not the search. Few creases are in view (a frame
 # sees one or two terraces near the horizon), and paint edges are everywhere to align them with.
 def test_open_scene_intensity_recovers_extrinsic(sim_dir: Path) -> None:
+    """From the log's 5 deg / 0.5 m start in a box that holds it (10 deg / 1 m): measured 0.195 deg /
+    2.3 cm. The default 5 deg / 0.5 m box puts that start's truth on its edge: 3.64 deg / 36 cm,
+    ``suspect``; from two starts 2 deg / 12 cm off, default box: 0.21 / 2.5 and 0.20 / 2.9. The lidar's
+    sphere keeps a 0.2 deg bias here; the camera's (the default until stop 24) gave 0.13 deg / 1.4 cm
+    from this start, 0.05 / 1.1 and 1.77 / 18.7 from the other two."""
     frames, T_init, T_true = simulated_frames(sim_dir, "open", "intensity", 10)
-    result = calibrate(frames, T_init, CalibrationConfig())
+    result = calibrate(frames, T_init, CalibrationConfig(search_deg=10.0, search_m=1.0))
     rot = rotation_error_deg(result.T_camera_lidar, T_true)
     trans = translation_error_m(result.T_camera_lidar, T_true)
-    assert rot <= 0.2, f"rotation error {rot:.3f} deg"
+    assert rot <= 0.3, f"rotation error {rot:.3f} deg"
     assert trans <= 0.04, f"translation error {trans:.3f} m"
+    assert result.verdict == "recalibrated", result.verdict_reason
 
 
 @pytest.mark.slow

@@ -159,19 +159,24 @@ def test_new_fields_and_lists_convert_by_type(monkeypatch: pytest.MonkeyPatch) -
 
 
 def test_gradient_settings_follow_the_viewpoint() -> None:
-    """``auto``: the paper's camera sphere (Algorithm 1, nearest-by-angle neighbours) while the initial
-    translation is trusted to 0.5 m, the lidar's own sphere (least squares, neighbours across rings)
-    for wider boxes; explicit choices win."""
+    """``auto``: the lidar's own sphere (least squares, neighbours across rings) in every box, exploring
+    only in wide ones; the paper's camera sphere (Algorithm 1, nearest-by-angle neighbours) on request;
+    explicit choices win."""
     from workflows.calibrate import solver_config
 
     config = Config()
     assert config.calibration.gradient_viewpoint == "auto"
     solver = solver_config(config)
-    assert (solver.viewpoint, solver.fit, solver.neighbours_on("camera")) == ("camera", "paper", "angle")
+    assert (solver.viewpoint, solver.fit, solver.neighbours_on("lidar")) == ("lidar", "lsq", "sampling")
+    assert not solver.explores and not solver.wide_box
     config.calibration.search_m = 1.0
     solver = solver_config(config)
     assert (solver.viewpoint, solver.fit, solver.neighbours_on("lidar")) == ("lidar", "lsq", "sampling")
+    assert solver.explores and solver.wide_box
     assert solver.neighbours_on("camera") == "angle"  # Levinson's depth jumps stay on the camera sphere
+    config.calibration.gradient_viewpoint = "camera"
+    solver = solver_config(config)
+    assert (solver.viewpoint, solver.fit, solver.neighbours_on("camera")) == ("camera", "paper", "angle")
     config.calibration.gradient_viewpoint = "camera"
     config.calibration.gradient_neighbours = "sampling"
     config.calibration.gradient_fit = "lsq"

@@ -40,8 +40,7 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--gradient-viewpoint", choices=["auto", "camera", "lidar"],
                    help="lidar gradients on the camera's sphere at the initial guess (paper) or on the lidar's own, "
-                        "carried to the camera; auto (default): camera up to --search-deg 5 and --search-m 0.5, "
-                        "lidar beyond or for sparse-ring lidars")
+                        "carried to the camera; auto (default): the lidar's")
     p.add_argument("--gradient-fit", choices=["auto", "paper", "lsq"],
                    help="lidar gradient: Algorithm 1 or least squares; auto (default): lsq with the lidar viewpoint")
     p.add_argument("--gradient-neighbours", choices=["auto", "angle", "sampling"],

@@ -14,12 +14,12 @@ swarm's optimum does not cure it (two rounds: 0.60 deg / 22 cm -> 0.22 / 10.5 ->
 25 -> 0.71 / 31 -> 0.67 / 31), nor does linearising at the truth itself (box 2 deg / 0.2 m:
 0.18 deg / 21 cm). Lidar gradients taken on the lidar's own sphere do not depend on the initial
 translation; with the least-squares fit and neighbours across rings all 10 seeds land within the
-bound; ``gradient_viewpoint='auto'`` takes them whenever the translation box is wider than 0.5 m
-(see ``CalibrationConfig.gradient_viewpoint``). A coarse-to-fine schedule (whole box against image
-gradients blurred 4x, then a 2 deg / 0.2 m box re-linearised at its optimum) hurt every case measured
-(KITTI from tf 1.11 deg / 18 cm vs 0.14 / 8; simulated street 640x360 intensity 0.53 deg / 8.3 cm vs
-0.25 / 1.0) and was removed. What wide boxes do get is a first swarm phase against blurred image
-gradients in the same box, with the same lidar gradients (``CalibrationConfig.explore``).
+bound; ``gradient_viewpoint='auto'`` takes them (see ``CalibrationConfig.gradient_viewpoint``). A
+coarse-to-fine schedule (whole box against image gradients blurred 4x, then a 2 deg / 0.2 m box
+re-linearised at its optimum) hurt every case measured (KITTI from tf 1.11 deg / 18 cm vs 0.14 / 8;
+simulated street 640x360 intensity 0.53 deg / 8.3 cm vs 0.25 / 1.0) and was removed. What wide boxes
+do get is a first swarm phase against blurred image gradients in the same box, with the same lidar
+gradients (``CalibrationConfig.explore``).
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ from pipeline.errors import ProcessingError
 from pipeline.transforms import rotation_error_deg, translation_error_m
 from stages.calibration.config import CalibrationConfig
 from stages.calibration.frame import CalibrationFrame, Mat4, fold_rectification
-from stages.calibration.observability import translation_profile, weak_axes
+from stages.calibration.observability import AXES, translation_profile, weak_axes
 from stages.calibration.problem import CalibrationProblem
 from stages.calibration.sphere_gradients import cross_ring_neighbours, sphere_coordinates
 
@@ -179,24 +179,18 @@ def _seeded_runs(problem: CalibrationProblem, cfg: CalibrationConfig, hold_trans
 
 def resolve_auto_rules(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
                       config: CalibrationConfig) -> CalibrationConfig:
-    """``config`` with the data part of the ``auto`` rules applied, for a scan whose rings are so sparse
+    """``config`` with the data part of the ``auto`` rules applied: for a scan whose rings are so sparse
     that its points have fewer than 2 of their ``sphere_k`` nearest neighbours on other rings
-    (``cross_ring_neighbours`` on the first frame's lidar sphere): where the box alone would pick the
-    camera sphere, the lidar viewpoint with neighbours across rings is taken instead, and where it would
-    explore, exploration is left off (see ``CalibrationConfig.explore``)."""
-    if config.metric != "gom" or not frames:
-        return config
-    pick_view = config.gradient_viewpoint == "auto" and config.viewpoint == "camera"
-    skip_explore = config.explore == "auto" and config.explores
-    if not (pick_view or skip_explore):
+    (``cross_ring_neighbours`` on the first frame's lidar sphere), where the box alone would explore,
+    exploration is left off (see ``CalibrationConfig.explore``)."""
+    if config.metric != "gom" or not frames or not (config.explore == "auto" and config.explores):
         return config
     points = np.asarray(frames[0].points_xyz, dtype=np.float64)
     points = points[np.all(np.isfinite(points), axis=1)]
     R = (np.asarray(fold_rectification(frames[0]).T_camera_camera0) @ np.asarray(T_camera_lidar_init))[:3, :3]
     if cross_ring_neighbours(sphere_coordinates(points @ R.T), config.sphere_k) >= 2:
         return config
-    return dataclasses.replace(config, gradient_viewpoint="lidar" if pick_view else config.gradient_viewpoint,
-                               explore="off" if skip_explore else config.explore)
+    return dataclasses.replace(config, explore="off")
 
 
 def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
@@ -242,6 +236,8 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         trans_std = float("nan") if hold else float(np.sqrt(np.mean([translation_error_m(T, T_best) ** 2
                                                                     for T in Ts])))
     agreeing = _agreeing(runs, best_index, cfg)
+    weak = weak_axes(profile, cfg.weak_translation_ratio)
+    weak_move_m = float(np.linalg.norm([x_best[3 + AXES.index(a)] for a in weak])) if weak else 0.0
     chance = {"gom": 0.5, "nmi": 1.0, "levinson": 0.0}[cfg.metric]
     flat = _flat(problem, x_best, score, chance)
     initial_score = float(init_scores.mean())
@@ -263,6 +259,10 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     elif len(runs) > 1 and agreeing == 0:
         reason = (f"no other of the {len(runs)} seeded runs lands within {cfg.agree_rotation_deg} deg / "
                   f"{cfg.agree_translation_m} m of the best")
+    elif not cfg.wide_box and weak_move_m > cfg.weak_move_max_m:
+        reason = (f"the translation moved {100 * weak_move_m:.0f} cm along camera axes the log fixes weakly "
+                  f"({', '.join(weak)}); more than {100 * cfg.weak_move_max_m:.0f} cm from a trusted initial "
+                  "guess needs a log with nearer structure, or --translation hold")
     elif turned_deg > cfg.agree_rotation_deg:
         reason = (f"the seeded runs disagree; with the translation held they agree on a rotation {turned_deg:.2f} deg "
                   "from the best 6-DoF run's, so it is not only the translation they disagree on")
@@ -282,4 +282,4 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         focal_scale=float(x_best[6]) if x_best.size > 6 else 1.0, metric=cfg.metric,
         gradient_viewpoint=cfg.viewpoint, ring_smoothing_px=max(problem.ring_smoothing_px),
         translation_held=hold, translation_profile=profile,
-        weak_translation_axes=weak_axes(profile, cfg.weak_translation_ratio))
+        weak_translation_axes=weak)
