@@ -223,8 +223,9 @@ def test_pjlab_two_frames_with_distortion() -> None:
 @pytest.mark.slow
 def test_pjlab_rig2_single_raw_frame_of_another_rig() -> None:
     """Another rig (raw bgr8 ``Image``, 5-coefficient distortion), one frame, workflow defaults: measured
-    2.00 deg / 13.2 cm -> 0.304 deg / 16.1 cm. One frame fixes the rotation; its translation is not
-    observed well enough to improve on the log's 13 cm (guard at 25 cm)."""
+    2.00 deg / 13.2 cm -> 0.299 deg / 14.2 cm (the camera sphere before stop 24: 0.304 / 16.1). One frame
+    fixes the rotation; its translation is not observed well enough to improve on the log's 13 cm (guard
+    at 25 cm)."""
     log_path("pjlab_road_rig2")
     problem = load_real_frames("pjlab_road_rig2")
     assert len(problem.frames) == 1

@@ -12,6 +12,10 @@ from stages.calibration.metrics import METRICS
 class CalibrationConfig:
     """Settings of ``calibrate``.
 
+    The evidence given for each default was measured when it was chosen; unless it names the viewpoint,
+    evidence from a box of 5 deg / 0.5 m or less predates stop 24 and used the paper's camera sphere, the
+    default there until then (``gradient_viewpoint``; ``benchmarks/bench_starts.py`` for the current one).
+
     Attributes:
         metric: ``gom`` | ``nmi`` | ``levinson``.
         search_deg, search_m: half-widths of the search box around the initial guess (``search_m`` 0: the
@@ -173,11 +177,11 @@ class CalibrationConfig:
             - simulated open yard (intensity), 2 starts: 0.051 / 1.1 and 1.77 / 18.7 -> 0.208 / 2.5 and
               0.200 / 2.9;
             - PJLab rig1 (no return nearer than ~4 m) is the exception: 0.533 / 12.2 (2 of 5, the others
-              0.55-0.75 deg) -> 0.807 / 41.4 (0 of 5): the lidar view's runs agree on an optimum ~40 cm
+              0.53-0.75 deg) -> 0.807 / 41.4 (0 of 5): the lidar view's runs agree on an optimum ~40 cm
               along the optical axis, which the translation profile names weak, so those estimates are
               ``suspect`` (``weak_move_max_m``);
             - nuScenes (32 beams) took the lidar view before as well (rings too sparse for the camera's).
-            Until this stop ``auto`` chose the camera view for boxes up to 5 deg / 0.5 m on evidence from
+            Until stop 24 ``auto`` chose the camera view for boxes up to 5 deg / 0.5 m on evidence from
             one start per log (the log's tf), where it was ahead on KITTI (0.133 deg / 7.2 cm vs 0.189 /
             3.7) and PJLab rig1 (0.186 / 27 vs 0.85 / 45); across starts that lead was chance. From KITTI
             starts 5 deg / 0.5 m off, box 10 deg / 1 m: 10 of 10 seeds within 0.3 deg / 10 cm with the
