@@ -29,18 +29,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench_gom import CASES  # the GOM table's cases, beside this script
+
 from pipeline.config import Config
 from stages.calibration import CalibrationConfig, calibrate
 from tests.test_calibration_real import LOGS, errors, load_real_frames
 from tests.test_calibration_synthetic import perturb
 from workflows.calibrate import solver_config
 
-REAL = {
-    "kitti": ("kitti_2011_09_26.mcap", {}),
-    "pjlab": ("pjlab_road_rig1", {}),
-    "pjlab-rig2": ("pjlab_road_rig2", {}),
-    "nuscenes": ("nuscenes_n015.bag", {"cameras": 6, "ego_motion": True}),
-}
+REAL = {name: CASES[name] for name in ("kitti", "pjlab", "pjlab-rig2", "nuscenes")}  # the GOM table's logs
 SIM = {"sim-street": "street", "sim-open": "open"}
 SETTINGS = {"default": {}, "camera": {"gradient_viewpoint": "camera"}, "lidar": {"gradient_viewpoint": "lidar"}}
 

@@ -50,13 +50,13 @@ def sweep_motion(
     t = np.asarray(times, dtype=np.float64).ravel()
     if t.shape[0] != lidar.n_points:
         return None
-    kind = classify_point_times(t)
-    if kind.kind == "foreign":
+    classified = classify_point_times(t)
+    if classified.kind == "foreign":
         log.warning("scan at %d: per-point times %.3f..%.3f s from its stamp are not a sweep; the scan moves "
-                    "by its stamp", lidar.stamp_ns, kind.first_s, kind.last_s)
-    if not kind.is_sweep:
+                    "by its stamp", lidar.stamp_ns, classified.first_s, classified.last_s)
+    if not classified.is_sweep:
         return None
-    t_first, t_last = kind.first_s, kind.last_s
+    t_first, t_last = classified.first_s, classified.last_s
     # the sweep's motion T_lidar(first)_lidar(last): scan_motion from the last point time to the first
     T_first_last = scan_motion(tree, lidar_frame, lidar.stamp_ns + round(t_last * 1e9),
                                lidar.stamp_ns + round(t_first * 1e9))

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from pipeline.errors import DecodeError
-from pipeline.point_times import classify_point_times
+from pipeline.point_times import PointTimeKind, classify_point_times
 from readers.base import LogReader
 from readers.decode.pointcloud2 import decode_pointcloud2
 from readers.frames import camera_info_topic_for
@@ -75,7 +75,7 @@ class LidarSummary:
     points: int
     channels: tuple[str, ...]
     time_range_s: tuple[float, float] | None
-    point_times: str
+    point_times: PointTimeKind
 
     def describe(self) -> str:
         if self.time_range_s is None:

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from pipeline.point_times import classify_point_times
+from pipeline.point_times import PointTimes, classify_point_times
 from pipeline.transforms import screw_apply, twist_of
 from stages.registration.pointset import PointSet
 
@@ -33,10 +33,12 @@ def sweep_twist(T_prev_curr: NDArray[np.floating], interval_s: float) -> NDArray
 def usable_times(times_s: NDArray[np.floating] | None, interval_s: float) -> bool:
     """True when ``times_s`` (point time minus stamp, s) are one sweep's firing times
     (``pipeline.point_times``, with the scan interval known), every one finite."""
-    if not (np.isfinite(interval_s) and interval_s > 0):
-        return False
-    times = classify_point_times(times_s, interval_s)
-    return times.is_sweep and times.all_finite
+    return sweep_usable(classify_point_times(times_s, interval_s), interval_s)
+
+
+def sweep_usable(times: PointTimes, interval_s: float) -> bool:
+    """``usable_times`` for times already classified with ``interval_s``."""
+    return bool(np.isfinite(interval_s) and interval_s > 0) and times.is_sweep and times.all_finite
 
 
 def deskew_points(points_xyz: NDArray[np.floating], times_s: NDArray[np.floating],
@@ -57,4 +59,4 @@ def deskew_pointset(scan: PointSet, twist: NDArray[np.floating]) -> PointSet:
     return dataclasses.replace(scan, points_xyz=np.ascontiguousarray(points), covariances=covariances)
 
 
-__all__ = ["deskew_points", "deskew_pointset", "sweep_twist", "usable_times"]
+__all__ = ["deskew_points", "deskew_pointset", "sweep_twist", "sweep_usable", "usable_times"]

@@ -30,7 +30,7 @@ from pipeline.errors import ConfigError, InputError
 from pipeline.frames import LidarFrame
 from pipeline.point_times import classify_point_times
 from pipeline.transforms import apply, invert, rotation_error_deg, translation_error_m
-from stages.registration.deskew import deskew_points, deskew_pointset, sweep_twist, usable_times
+from stages.registration.deskew import deskew_points, deskew_pointset, sweep_twist, sweep_usable
 from stages.registration.gicp import RegistrationConfig, register
 from stages.registration.pointset import PointSet, pointset_from_frame, prepare_pointset
 from stages.registration.voxel import voxel_downsample, voxel_keys
@@ -272,8 +272,8 @@ class _Deskew:
         """The sweep's twist when ``scan`` can be de-skewed, else None."""
         if not self.enabled or scan.times_s is None:
             return None
-        if not usable_times(scan.times_s, interval_s):
-            times = classify_point_times(scan.times_s, interval_s)
+        times = classify_point_times(scan.times_s, interval_s)
+        if not sweep_usable(times, interval_s):
             if times.kind == "foreign" and not self._warned:  # constant times: de-skewed by its driver
                 log.warning("scans not de-skewed: point times %.3g..%.3g s from the stamp do not fit a %.3g s "
                             "scan interval (first at %d)", times.first_s, times.last_s, interval_s,
