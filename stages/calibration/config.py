@@ -186,7 +186,7 @@ class CalibrationConfig:
             3.7) and PJLab rig1 (0.186 / 27 vs 0.85 / 45); across starts that lead was chance. From KITTI
             starts 5 deg / 0.5 m off, box 10 deg / 1 m: 10 of 10 seeds within 0.3 deg / 10 cm with the
             lidar view vs 0 of 10 (``bench_gom.py --seeds 10``).
-        auto_lidar_viewpoint_above_deg, auto_lidar_viewpoint_above_m: a box wider than either (``search_deg``
+        wide_box_above_deg, wide_box_above_m: a box wider than either (``search_deg``
             or ``search_m``) is wide (``wide_box``): exploration then applies, and the start is not trusted
             (no translation hold, no ``weak_move_max_m``).
         gradient_fit: ``paper`` (Algorithm 1, ``sum dv dx``) or ``lsq`` (least-squares gradient over the
@@ -283,8 +283,8 @@ class CalibrationConfig:
     occlusion_rel_tol: float = 0.1
     occlusion_abs_tol_m: float = 0.1
     gradient_viewpoint: str = "auto"
-    auto_lidar_viewpoint_above_deg: float = 5.0
-    auto_lidar_viewpoint_above_m: float = 0.5
+    wide_box_above_deg: float = 5.0
+    wide_box_above_m: float = 0.5
     gradient_fit: str = "auto"
     neighbours_by: str = "auto"
     explore: str = "auto"
@@ -304,8 +304,8 @@ class CalibrationConfig:
     @property
     def wide_box(self) -> bool:
         """Whether the search box is wider than the auto rules' thresholds in rotation or translation."""
-        return (self.search_deg > self.auto_lidar_viewpoint_above_deg
-                or self.search_m > self.auto_lidar_viewpoint_above_m)
+        return (self.search_deg > self.wide_box_above_deg
+                or self.search_m > self.wide_box_above_m)
 
     @property
     def explores(self) -> bool:
