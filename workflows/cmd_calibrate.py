@@ -69,7 +69,9 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--estimate-focal", action="store_true", help="also estimate a focal length scale")
     p.add_argument("--particles", type=int, metavar="N", help="particle swarm size (default 200)")
     p.add_argument("--seed", type=int, help="random seed")
-    p.add_argument("--repeats", type=int, metavar="N", help="seeded runs; their spread is the uncertainty")
+    p.add_argument("--repeats", type=int, metavar="N",
+                   help="seeded runs; their spread is the uncertainty (one run in a box wider than 5 deg / 0.5 m is "
+                   "suspect: nothing confirms it)")
     p.add_argument("--confirm-repeats", type=int, metavar="N",
                    help="extra seeded runs while none confirms the best (default 3; 0: none)")
     p.add_argument("--allow-truncated", action="store_true", help="use what is intact of a truncated log")

@@ -60,7 +60,8 @@ class CalibrationResult:
         verdict: ``ok`` (initial guess confirmed), ``recalibrated`` or ``suspect`` (GOM below
             ``gom_suspect_below``, a flat optimum, an estimate at the edge of the search box or on a
             frame's overlap limit, no other seeded run agreeing with the returned one, or a held translation
-            whose rotation lies away from the unconfirmed 6-DoF best's; ``CalibrationConfig.translation``).
+            whose rotation lies away from the unconfirmed 6-DoF best's, ``CalibrationConfig.translation``; or
+            a single run in a ``CalibrationConfig.wide_box``, which nothing confirms).
         verdict_reason: why ``suspect`` (empty otherwise).
         flat: True when the optimum is not distinct from its neighbourhood.
         rotation_std_deg, translation_std_m: RMS deviation of the repeats from the returned estimate
@@ -259,6 +260,9 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     elif len(runs) > 1 and agreeing == 0:
         reason = (f"no other of the {len(runs)} seeded runs lands within {cfg.agree_rotation_deg} deg / "
                   f"{cfg.agree_translation_m} m of the best")
+    elif len(runs) == 1 and cfg.wide_box:
+        reason = (f"one seeded run in a wide search box (+-{cfg.search_deg:g} deg, +-{cfg.search_m:g} m) with no "
+                  "other run to confirm it: far optima lie in such a box; use --repeats 2 or more")
     elif not cfg.wide_box and weak_move_m > cfg.weak_move_max_m:
         reason = (f"the translation moved {100 * weak_move_m:.0f} cm along camera axes the log fixes weakly "
                   f"({', '.join(weak)}); more than {100 * cfg.weak_move_max_m:.0f} cm from a trusted initial "
