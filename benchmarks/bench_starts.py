@@ -9,9 +9,11 @@ within 0.5 deg / 15 cm, how many are outside yet not ``suspect`` (confidently wr
 calibration.
 
     .venv/bin/python benchmarks/bench_starts.py [--logs kitti pjlab pjlab-rig2 nuscenes sim-street sim-open]
-        [--starts 5] [--deg 2] [--m 0.12] [--settings default camera lidar]
+        [--starts 5] [--deg 2] [--m 0.12] [--settings default camera lidar] [--features range+normals range ...]
 
 Settings: ``default`` (the shipped configuration), ``camera`` / ``lidar`` (``gradient_viewpoint`` forced).
+``--features``: calibrate with each of these lidar features in turn (default: the workflow's for real logs,
+``intensity`` for simulated ones); the frames are loaded again for each.
 Real logs need ``../shared/data``; simulated ones are written to a temporary folder (intensity feature,
 10 frames, 64 beams, as in ``tests/test_calibration_sim.py``).
 """
@@ -42,17 +44,21 @@ SIM = {"sim-street": "street", "sim-open": "open"}
 SETTINGS = {"default": {}, "camera": {"gradient_viewpoint": "camera"}, "lidar": {"gradient_viewpoint": "lidar"}}
 
 
-def load(name: str, sim_dir: Path) -> tuple[list, np.ndarray, np.ndarray | None, CalibrationConfig] | None:  # type: ignore[type-arg]
-    """(frames, T_true, the log's own tf start (real logs), base config); None when a real log is absent."""
+def load(name: str, sim_dir: Path, feature: str | None = None) -> tuple[  # type: ignore[type-arg]
+        list, np.ndarray, np.ndarray | None, CalibrationConfig] | None:
+    """(frames, T_true, the log's own tf start (real logs), base config) with lidar ``feature`` (None: the
+    case's own); None when a real log is absent."""
     if name in SIM:
         from tests.test_calibration_sim import simulated_frames
 
-        frames, _, T_true = simulated_frames(sim_dir, SIM[name], "intensity", 10)
+        frames, _, T_true = simulated_frames(sim_dir, SIM[name], feature or "intensity", 10)
         return frames, T_true, None, CalibrationConfig()
     path, options = REAL[name]
     if not (LOGS / path).exists():
         print(f"{name}: {LOGS / path} not present, skipped")
         return None
+    if feature is not None:
+        options = {**options, "feature": feature}
     problem = load_real_frames(path, **options)  # type: ignore[arg-type]
     return problem.frames, problem.T_true, problem.T_init, solver_config(Config())
 
@@ -64,19 +70,21 @@ def main() -> None:
     parser.add_argument("--deg", type=float, default=2.0)
     parser.add_argument("--m", type=float, default=0.12)
     parser.add_argument("--settings", nargs="*", default=list(SETTINGS), choices=list(SETTINGS))
+    parser.add_argument("--features", nargs="*", default=[None], help="lidar features to compare (default: the case's)")
     args = parser.parse_args()
     rows = []
     with tempfile.TemporaryDirectory(prefix="fleetcal_starts_") as tmp:
-        for name in args.logs:
-            loaded = load(name, Path(tmp))
+        for name, feature in [(n, f) for n in args.logs for f in args.features]:
+            loaded = load(name, Path(tmp), feature)
             if loaded is None:
                 continue
             frames, T_true, T_tf, base = loaded
             starts = [perturb(T_true, args.deg, args.m, seed=1000 + s) for s in range(1, args.starts + 1)]
             if T_tf is not None:
                 starts.insert(0, T_tf)
-            for setting in args.settings:
-                config = replace(base, **SETTINGS[setting])  # type: ignore[arg-type]
+            for setting_name in args.settings:
+                config = replace(base, **SETTINGS[setting_name])  # type: ignore[arg-type]
+                setting = setting_name if feature is None else f"{setting_name}/{feature}"
                 rot, trans, wrong, seconds = [], [], 0, []
                 for k, T_start in enumerate(starts, start=0 if T_tf is not None else 1):
                     t0 = time.perf_counter()
@@ -95,10 +103,10 @@ def main() -> None:
                              100 * max(trans), within_n, wrong, float(np.mean(seconds))))
     print(f"\nstarts {args.deg:g} deg / {100 * args.m:g} cm off on random axes (seeds 1001..{1000 + args.starts}), "
           "and for real logs also the log's own tf")
-    print(f"{'log':<12} {'setting':<8} {'n':>2} {'rot med':>8} {'rot max':>8} {'cm med':>7} {'cm max':>7} "
+    print(f"{'log':<12} {'setting':<20} {'n':>2} {'rot med':>8} {'rot max':>8} {'cm med':>7} {'cm max':>7} "
           f"{'within':>6} {'wrong':>5} {'s/run':>6}")
     for name, setting, n, rmed, rmax, tmed, tmax, within_n, wrong, sec in rows:
-        print(f"{name:<12} {setting:<8} {n:>2} {rmed:>8.3f} {rmax:>8.3f} {tmed:>7.1f} {tmax:>7.1f} "
+        print(f"{name:<12} {setting:<20} {n:>2} {rmed:>8.3f} {rmax:>8.3f} {tmed:>7.1f} {tmax:>7.1f} "
               f"{within_n:>6} {wrong:>5} {sec:>6.1f}")
     print("within: 0.5 deg and 15 cm of the reference; wrong: outside that yet not 'suspect'")
 
