@@ -103,10 +103,10 @@ def main() -> None:
                              100 * max(trans), within_n, wrong, float(np.mean(seconds))))
     print(f"\nstarts {args.deg:g} deg / {100 * args.m:g} cm off on random axes (seeds 1001..{1000 + args.starts}), "
           "and for real logs also the log's own tf")
-    print(f"{'log':<12} {'setting':<20} {'n':>2} {'rot med':>8} {'rot max':>8} {'cm med':>7} {'cm max':>7} "
+    print(f"{'log':<12} {'setting':<24} {'n':>2} {'rot med':>8} {'rot max':>8} {'cm med':>7} {'cm max':>7} "
           f"{'within':>6} {'wrong':>5} {'s/run':>6}")
     for name, setting, n, rmed, rmax, tmed, tmax, within_n, wrong, sec in rows:
-        print(f"{name:<12} {setting:<20} {n:>2} {rmed:>8.3f} {rmax:>8.3f} {tmed:>7.1f} {tmax:>7.1f} "
+        print(f"{name:<12} {setting:<24} {n:>2} {rmed:>8.3f} {rmax:>8.3f} {tmed:>7.1f} {tmax:>7.1f} "
               f"{within_n:>6} {wrong:>5} {sec:>6.1f}")
     print("within: 0.5 deg and 15 cm of the reference; wrong: outside that yet not 'suspect'")
 
