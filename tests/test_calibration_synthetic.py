@@ -343,6 +343,8 @@ def test_a_long_move_along_weak_axes_from_a_trusted_start_is_suspect() -> None:
     np.testing.assert_allclose(lenient.T_camera_lidar, strict.T_camera_lidar)
     wide = calibrate([wall], T_init, dataclasses.replace(cfg, search_m=0.8))
     assert "weakly" not in wide.verdict_reason
+    # the weak-move rule was reached and passed over: the (later) one-run rule of a wide box gave the reason
+    assert "one seeded run in a wide search box" in wide.verdict_reason, wide.verdict_reason
 
 
 def test_a_wide_box_never_holds_the_translation() -> None:
