@@ -40,14 +40,18 @@ SIM = {"beams": 64, "columns": 512, "width": 640, "height": 360, "perturb_deg": 
 
 def simulated_frames(out: Path, scene: str, feature: str, frames: int, beams: int = SIM["beams"],
                      columns: int = SIM["columns"], skewed_at_m_s: float | None = None,
-                     point_times: bool = True, panorama: bool = False, rectified: bool = False) -> tuple[
+                     point_times: bool = True, panorama: bool = False, rectified: bool = False,
+                     lidar: str = "spinning") -> tuple[
         list[CalibrationFrame], NDArray[np.float64], NDArray[np.float64]]:
     """Frames (as the calibrate workflow collects them), the log's tf guess and the true extrinsic.
     ``skewed_at_m_s``: a motion-distorted log (each column cast from the pose at its firing time) driven
     at that speed; ``point_times``: the workflow's ``calibration.point_times``; ``panorama``: a 1024x256
     cylindrical 360 deg camera instead of the 640x360 pinhole; ``rectified``: rectified stereo images
-    (``image_rect``, a CameraInfo R of 1.5 deg)."""
+    (``image_rect``, a CameraInfo R of 1.5 deg); ``lidar``: ``rosette`` for the forward-looking
+    non-repetitive lidar (``beams`` lines x ``columns`` samples)."""
     name = scene if beams == SIM["beams"] else f"{scene}_{beams}beams"
+    if lidar != "spinning":
+        name = f"{name}_{lidar}"
     if skewed_at_m_s is not None:
         name = f"{name}_skewed_{skewed_at_m_s:g}"
     if panorama:
@@ -56,7 +60,7 @@ def simulated_frames(out: Path, scene: str, feature: str, frames: int, beams: in
         name = f"{name}_rectified"
     log = out / (f"{name}.mcap" if columns == SIM["columns"] else f"{name}_{columns}columns.mcap")
     if not log.exists():
-        options = {**SIM, "beams": beams, "columns": columns}
+        options = {**SIM, "beams": beams, "columns": columns, "lidar": lidar}
         if skewed_at_m_s is not None:
             options.update(deskew=False, speed_m_s=skewed_at_m_s)
         if panorama:

@@ -1,10 +1,10 @@
 """``fleetcal simulate OUT``: write a synthetic log with exact ground truth and ``<OUT stem>.truth.json``.
 
 The vehicle drives a loop round the scene (street: a city block; corridor: a ring of 3 m corridors with
-poster-covered walls; open: a yard with painted ground) with a 10 Hz spinning lidar and 10 Hz cameras fired 10-30 ms
-after each scan. ``/tf_static`` carries the calibration perturbed by ``--perturb-deg`` / ``--perturb-m``
-(random axis and direction, seeded); the truth file holds the exact ``T_camera_lidar``, the perturbed
-one and the lidar trajectory. The same arguments always give byte-identical files.
+poster-covered walls; open: a yard with painted ground) with a 10 Hz spinning (or rosette) lidar and 10 Hz
+cameras fired 10-30 ms after each scan. ``/tf_static`` carries the calibration perturbed by
+``--perturb-deg`` / ``--perturb-m`` (random axis and direction, seeded); the truth file holds the exact
+``T_camera_lidar``, the perturbed one and the lidar trajectory. The same arguments always give byte-identical files.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from typing import Any
 
 from pipeline.errors import ConfigError, UsageError
 from workflows.cli import emit_json
-from workflows.simulator.lidar import SUPPORTED_BEAMS
+from workflows.simulator.lidar import LIDAR_PATTERNS, MAX_ROSETTE_LINES, SUPPORTED_BEAMS
 from workflows.simulator.scene import SCENES
 from workflows.simulator.truth import MAX_CAMERAS
 from workflows.simulator.write import SimulationOptions, simulate_log
@@ -26,6 +26,7 @@ EXAMPLES = """examples:
   fleetcal simulate /tmp/poster_wall.mcap --scene corridor --frames 50 --max-range 20
   fleetcal simulate /tmp/yard --format ros2 --scene open --compressed --fisheye
   fleetcal simulate /tmp/drift.mcap --perturb-deg 3 --perturb-m 0.2 --organized --json
+  fleetcal simulate /tmp/livox.mcap --lidar rosette --skewed
 """
 
 
@@ -80,12 +81,26 @@ def add_simulation_arguments(parser: argparse.ArgumentParser, frames: int, size:
         help=f"lidar scans at 10 Hz (default {frames})",
     )
     parser.add_argument("--scene", choices=SCENES, default="street", help="default street")
-    parser.add_argument("--beams", type=int, choices=SUPPORTED_BEAMS, default=64, help="lidar rings (default 64)")
+    parser.add_argument(
+        "--lidar",
+        choices=LIDAR_PATTERNS,
+        default="spinning",
+        help="spinning (rings x columns, default) or rosette (a forward-looking non-repetitive Livox-like "
+        "lidar, 70.4 deg circular field of view: --beams laser lines x --columns samples per scan)",
+    )
+    parser.add_argument(
+        "--beams",
+        type=int,
+        default=None,
+        help=f"spinning: rings, one of {', '.join(map(str, SUPPORTED_BEAMS))} (default 64); rosette: laser "
+        f"lines, 1..{MAX_ROSETTE_LINES} (default 6)",
+    )
     parser.add_argument(
         "--columns",
         type=_int_range(64, 4096),
-        default=1024,
-        help="lidar firings per revolution (default 1024)",
+        default=None,
+        help="spinning: firings per revolution (default 1024); rosette: samples per line and scan (default 4000, "
+        "24k points per scan with 6 lines, as a Livox Avia)",
     )
     parser.add_argument(
         "--cameras",
@@ -161,8 +176,9 @@ def options_from_args(args: argparse.Namespace) -> SimulationOptions:
         fmt=args.format,
         frames=args.frames,
         scene=args.scene,
-        beams=args.beams,
-        columns=args.columns,
+        lidar=args.lidar,
+        beams=args.beams if args.beams is not None else (6 if args.lidar == "rosette" else 64),
+        columns=args.columns if args.columns is not None else (4000 if args.lidar == "rosette" else 1024),
         cameras=args.cameras,
         fisheye=args.fisheye,
         panorama=args.panorama,

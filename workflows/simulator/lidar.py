@@ -1,13 +1,18 @@
-"""Spinning multi-beam lidar model: beam layout, ray casting, range noise, intensity, dropouts.
+"""Lidar models (spinning multi-beam, or a non-repetitive rosette): ray layout, ray casting, range noise,
+intensity, dropouts.
 
-Lidar frame: x forward, y left, z up. Column ``c`` fires at azimuth ``2 pi c / columns`` (counter-clockwise
-from +x) at ``c / columns`` of the scan period after the scan stamp. Ring 0 is the lowest beam; the
-organised grid has one row per ring (row = ring) and one column per firing.
+Lidar frame: x forward, y left, z up. Column ``c`` fires at ``c / columns`` of the scan period after the
+scan stamp. Spinning: column ``c`` points at azimuth ``2 pi c / columns`` (counter-clockwise from +x);
+ring 0 is the lowest beam; the grid has one row per ring (row = ring) and one column per firing.
+Rosette (a forward-looking Risley-prism lidar such as a Livox Mid-70 / Avia): each row is one laser
+line tracing the sum of two counter-rotating prism deflections, a flower of petals that precess from
+scan to scan and so fill the circular field of view over time; rows are lines, not rings.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -17,6 +22,14 @@ from workflows.simulator.raycast import TriangleGrid, cast_rays
 from workflows.simulator.scene import Scene, surface_properties
 
 SUPPORTED_BEAMS = (16, 32, 64, 128)
+LidarPattern = Literal["spinning", "rosette"]
+LIDAR_PATTERNS: tuple[str, ...] = ("spinning", "rosette")
+MAX_ROSETTE_LINES = 16
+ROSETTE_HALF_ANGLE_DEG = 35.2
+"""Half the circular field of view of the rosette (a Livox Mid-70's 70.4 deg)."""
+ROSETTE_PRISM_HZ = (97.3, 63.1)
+"""Rotation rates of the two prisms (opposite senses): about 16 petals per 0.1 s scan and line, their
+ratio far from small fractions, so the pattern does not repeat."""
 
 
 def beam_elevations_deg(beams: int) -> NDArray[np.float64]:
@@ -44,8 +57,9 @@ class LidarModel:
     """Sensor parameters.
 
     Attributes:
-        beams, columns: rings and firings per revolution.
-        period_s: one revolution (0.1 s for 10 Hz).
+        beams, columns: rings and firings per revolution (``rosette``: laser lines, 1..16, and samples per
+            line and scan).
+        period_s: one revolution (0.1 s for 10 Hz); one scan of the rosette.
         range_noise_m: standard deviation of the range noise.
         max_range_m, min_range_m: no return beyond / before these.
         dropout: probability that a valid return is lost at random.
@@ -62,9 +76,16 @@ class LidarModel:
     dropout: float = 0.01
     gain_spread: float = 0.08
     seed: int = 0
+    pattern: LidarPattern = "spinning"
 
     def __post_init__(self) -> None:
-        beam_elevations_deg(self.beams)
+        if self.pattern == "rosette":
+            if not 1 <= self.beams <= MAX_ROSETTE_LINES:
+                raise ConfigError(f"a rosette lidar has 1..{MAX_ROSETTE_LINES} lines, got {self.beams}")
+        elif self.pattern == "spinning":
+            beam_elevations_deg(self.beams)
+        else:
+            raise ConfigError(f"unknown lidar pattern {self.pattern!r} (choose from {', '.join(LIDAR_PATTERNS)})")
         if not 64 <= self.columns <= 4096:
             raise ConfigError(f"lidar columns must be in 64..4096, got {self.columns}")
 
@@ -77,12 +98,33 @@ class LidarModel:
         rng = np.random.default_rng(np.random.SeedSequence([self.seed, self.beams, 0x6A1]))
         return np.clip(1.0 + self.gain_spread * rng.standard_normal(self.beams), 0.6, 1.4)
 
-    def directions(self) -> NDArray[np.float64]:
-        """(beams, columns, 3) unit ray directions in the lidar frame."""
+    def directions(self, scan_start_s: float = 0.0) -> NDArray[np.float64]:
+        """(beams, columns, 3) unit ray directions in the lidar frame of the scan that starts at
+        ``scan_start_s`` (seconds on the sensor's clock; only the rosette, whose prisms keep turning
+        from scan to scan, depends on it)."""
+        if self.pattern == "rosette":
+            return self._rosette_directions(scan_start_s)
         el = np.radians(self.elevations_deg)[:, None]
         az = 2 * np.pi * np.arange(self.columns)[None, :] / self.columns
         return np.stack(
             np.broadcast_arrays(np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) * np.ones_like(az)),
+            axis=-1,
+        )
+
+    def _rosette_directions(self, scan_start_s: float) -> NDArray[np.float64]:
+        """Two counter-rotating prisms, each deflecting by half the field of view: the deflection (angle
+        from +x, direction in the y-z plane) is the sum of two unit phasors; line ``l`` starts both at
+        its own phase (golden-ratio steps), so the lines interleave."""
+        t = scan_start_s + self.column_times_s()[None, :]
+        line = np.arange(self.beams)[:, None]
+        f1, f2 = ROSETTE_PRISM_HZ
+        phase1 = 2 * np.pi * ((line * 0.618034) % 1.0)
+        phase2 = 2 * np.pi * ((line * 0.414214) % 1.0)
+        half = np.radians(ROSETTE_HALF_ANGLE_DEG)
+        z = 0.5 * half * (np.exp(1j * (2 * np.pi * f1 * t + phase1)) + np.exp(-1j * (2 * np.pi * f2 * t + phase2)))
+        off_axis, around = np.abs(z), np.angle(z)
+        return np.stack(
+            np.broadcast_arrays(np.cos(off_axis), np.sin(off_axis) * np.cos(around), np.sin(off_axis) * np.sin(around)),
             axis=-1,
         )
 
@@ -130,10 +172,12 @@ def simulate_scan(
     model: LidarModel,
     T_world_lidar: NDArray[np.float64],
     rng: np.random.Generator,
+    scan_start_s: float = 0.0,
 ) -> LidarScan:
     """Cast one revolution from ``T_world_lidar``: (4, 4) for a de-skewed scan (every ray from the stamp
     pose), or (columns, 4, 4) poses at each column's firing time (points then stay in each column's frame,
-    as a moving real sensor reports them)."""
+    as a moving real sensor reports them). ``scan_start_s``: the scan's stamp on the sensor's clock, s
+    (where a rosette's prisms stand)."""
     B, C = model.beams, model.columns
     T = np.asarray(T_world_lidar, dtype=np.float64)
     deskewed = T.shape == (4, 4)
@@ -141,7 +185,7 @@ def simulate_scan(
         T = np.broadcast_to(T, (C, 4, 4))
     if T.shape != (C, 4, 4):
         raise ConfigError(f"T_world_lidar must be (4, 4) or ({C}, 4, 4), got {T.shape}")
-    dirs_l = model.directions()
+    dirs_l = model.directions(scan_start_s)
     dirs_w = np.einsum("cij,bcj->bci", T[:, :3, :3], dirs_l)
     origins = np.broadcast_to(T[:, :3, 3][None], (B, C, 3))
     t, tri = cast_rays(grid, origins.reshape(-1, 3), dirs_w.reshape(-1, 3), t_max=model.max_range_m)

@@ -33,7 +33,14 @@ from workflows.simulator.camera import (
     rectified_stereo_camera,
     render,
 )
-from workflows.simulator.lidar import SUPPORTED_BEAMS, LidarModel, LidarScan, simulate_scan
+from workflows.simulator.lidar import (
+    LIDAR_PATTERNS,
+    MAX_ROSETTE_LINES,
+    SUPPORTED_BEAMS,
+    LidarModel,
+    LidarScan,
+    simulate_scan,
+)
 from workflows.simulator.motion import LoopMotion
 from workflows.simulator.raycast import build_grid
 from workflows.simulator.scene import SCENES, build_scene
@@ -68,6 +75,9 @@ class SimulationOptions:
     ``deskew`` True (default): every point of a scan is cast from the vehicle pose at the scan stamp (no
     motion distortion); False: each column is cast from the pose at its firing time and reported in the
     lidar frame of that time, as a moving real sensor does (the ``time`` field then matters).
+    ``lidar``: ``spinning`` (``beams`` rings x ``columns`` firings) or ``rosette`` (a forward-looking
+    non-repetitive Livox-like lidar: ``beams`` laser lines, 1..16, x ``columns`` samples per scan;
+    ``workflows.simulator.lidar``); a rosette scan has no organised form.
     """
 
     fmt: LogFormat = "mcap"
@@ -91,6 +101,7 @@ class SimulationOptions:
     lidar_rate_hz: float = 10.0
     deskew: bool = True
     max_range_m: float = 100.0
+    lidar: str = "spinning"
 
     def validate(self) -> None:
         """Raise ConfigError with a one-line message for any nonsense value."""
@@ -103,10 +114,16 @@ class SimulationOptions:
             ),
             (self.scene in SCENES, f"unknown scene {self.scene!r} (choose from {', '.join(SCENES)})"),
             (self.frames >= 1, f"frames must be at least 1, got {self.frames}"),
+            (self.lidar in LIDAR_PATTERNS, f"unknown lidar {self.lidar!r} (choose from {', '.join(LIDAR_PATTERNS)})"),
             (
-                self.beams in SUPPORTED_BEAMS,
-                f"beams must be one of {', '.join(map(str, SUPPORTED_BEAMS))}, got {self.beams}",
+                self.lidar != "spinning" or self.beams in SUPPORTED_BEAMS,
+                f"beams (--beams) must be one of {', '.join(map(str, SUPPORTED_BEAMS))}, got {self.beams}",
             ),
+            (
+                self.lidar != "rosette" or 1 <= self.beams <= MAX_ROSETTE_LINES,
+                f"a rosette lidar has 1..{MAX_ROSETTE_LINES} lines (--beams), got {self.beams}",
+            ),
+            (self.lidar != "rosette" or not self.organized, "a rosette lidar's scans have no organised form"),
             (64 <= self.columns <= 4096, f"columns must be in 64..4096, got {self.columns}"),
             (1 <= self.cameras <= MAX_CAMERAS, f"cameras must be in 1..{MAX_CAMERAS}, got {self.cameras}"),
             (
@@ -197,6 +214,7 @@ def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet:
         period_s=1.0 / opts.lidar_rate_hz,
         max_range_m=opts.max_range_m,
         seed=opts.seed,
+        pattern="rosette" if opts.lidar == "rosette" else "spinning",
     )
     make_model = (fisheye_camera if opts.fisheye else panorama_camera if opts.panorama
                   else rectified_stereo_camera if opts.rectified else pinhole_camera)
@@ -233,7 +251,7 @@ def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet:
             T = motion.T_world_base(t_s(scans[k])) @ rig.T_base_lidar
         else:
             T = motion.T_world_base_many(t_s(scans[k]) + lidar.column_times_s()) @ rig.T_base_lidar
-        return simulate_scan(scene, grid, lidar, T, rng)
+        return simulate_scan(scene, grid, lidar, T, rng, scan_start_s=t_s(scans[k]))
 
     def render_job(index: int, sub: int) -> NDArray[np.uint8]:
         stamp = images[index][sub]
@@ -330,6 +348,7 @@ def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet:
     extra = {
         "frames": opts.frames,
         "lidar": {
+            "pattern": opts.lidar,
             "beams": opts.beams,
             "columns": opts.columns,
             "organized": opts.organized,
