@@ -28,8 +28,9 @@ MAX_ROSETTE_LINES = 16
 ROSETTE_HALF_ANGLE_DEG = 35.2
 """Half the circular field of view of the rosette (a Livox Mid-70's 70.4 deg)."""
 ROSETTE_PRISM_HZ = (97.3, 63.1)
-"""Rotation rates of the two prisms (opposite senses): about 16 petals per 0.1 s scan and line, their
-ratio far from small fractions, so the pattern does not repeat."""
+"""Rotation rates of the two prisms (opposite senses): each line passes the centre 16 times per 0.1 s scan,
+in 5 lobes (the ratio is near 3/2) that turn from scan to scan, so the pattern fills the field of view
+over about a second instead of repeating."""
 
 
 def beam_elevations_deg(beams: int) -> NDArray[np.float64]:
