@@ -186,6 +186,27 @@ def test_cli_rosette_lidar_log_points_stay_in_its_cone_and_change_every_scan(tmp
     assert load_truth(truth_path_for(log))["lidar"]["pattern"] == "rosette"
 
 
+def test_cli_rolled_lidar_sees_the_ground_level_through_its_tf(tmp_path: Path) -> None:
+    """``--lidar-roll 30``: the log's ``base_link -> lidar`` turns 30 deg about x, and the scan's ground
+    points, carried into ``base_link`` through it, lie level at z = 0 (in the lidar frame they lie on a plane
+    tilted by 30 deg): the truth and the casting agree on the mount."""
+    log = tmp_path / "rolled.mcap"
+    assert main(["simulate", str(log), "--lidar-roll", "30", "--scene", "open", "--frames", "1",
+                 "--image-size", "96x64", "--beams", "32", "--columns", "512", "-q"]) == 0
+    with open_log(log) as reader:
+        scan = next(iter_lidar_frames(reader, "/lidar/points"))
+        T_base_lidar = load_tf_tree(reader).lookup("base_link", "lidar")
+    roll_deg = np.degrees(np.arctan2(T_base_lidar[2, 1], T_base_lidar[2, 2]))
+    assert roll_deg == pytest.approx(30.0, abs=1e-6)
+    points_base = apply(T_base_lidar, scan.points_xyz.astype(np.float64))
+    ground = np.abs(points_base[:, 2]) < 0.3
+    assert ground.mean() > 0.5  # the yard is mostly flat ground
+    assert abs(np.median(points_base[ground, 2])) < 0.02
+    normal_lidar = np.linalg.svd(scan.points_xyz[ground] - scan.points_xyz[ground].mean(0))[2][2]
+    assert np.degrees(np.arccos(abs(normal_lidar[2]))) == pytest.approx(30.0, abs=1.0)
+    assert load_truth(truth_path_for(log))["lidar"]["roll_deg"] == 30.0
+
+
 @pytest.mark.parametrize("fmt", ["mcap", "ros1", "ros2"])
 def test_same_seed_gives_byte_identical_logs(tmp_path: Path, fmt: str) -> None:
     outputs = []
@@ -282,6 +303,7 @@ def test_truth_schema_matches_shared_data(shared_data: Path, tmp_path: Path) -> 
         (["--lidar", "rosette", "--beams", "64"], "--beams"),
         (["--lidar", "rosette", "--organized"], "organised"),
         (["--lidar", "flash"], "--lidar"),
+        (["--lidar-roll", "200"], "--lidar-roll"),
     ],
 )
 def test_cli_nonsense_arguments_get_one_line_error(

@@ -89,6 +89,13 @@ def add_simulation_arguments(parser: argparse.ArgumentParser, frames: int, size:
         "lidar, 70.4 deg circular field of view: --beams laser lines x --columns samples per scan)",
     )
     parser.add_argument(
+        "--lidar-roll",
+        type=_float_range(-180.0, 180.0),
+        default=0.0,
+        metavar="DEG",
+        help="lidar mounted rolled about its forward axis by DEG degrees (default 0: level)",
+    )
+    parser.add_argument(
         "--beams",
         type=int,
         default=None,
@@ -177,6 +184,7 @@ def options_from_args(args: argparse.Namespace) -> SimulationOptions:
         frames=args.frames,
         scene=args.scene,
         lidar=args.lidar,
+        lidar_roll_deg=args.lidar_roll,
         beams=args.beams if args.beams is not None else (6 if args.lidar == "rosette" else 64),
         columns=args.columns if args.columns is not None else (4000 if args.lidar == "rosette" else 1024),
         cameras=args.cameras,

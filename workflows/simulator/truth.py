@@ -77,13 +77,15 @@ def perturb(
     return make_T(R, T[:3, 3] + direction * translation_m)
 
 
-def build_rig(cameras: int, lidar_height_m: float, perturb_deg: float, perturb_m: float, seed: int) -> Rig:
-    """Lidar on the roof; camera i looks along ``CAMERA_YAWS_DEG[i]``, 0.3 m out from the lidar and 0.35 m
-    below it, pitched about 4 deg down with small seeded mounting errors."""
+def build_rig(cameras: int, lidar_height_m: float, perturb_deg: float, perturb_m: float, seed: int,
+              lidar_roll_deg: float = 0.0) -> Rig:
+    """Lidar on the roof, rolled ``lidar_roll_deg`` about its forward (x) axis (0: level); camera i looks
+    along ``CAMERA_YAWS_DEG[i]``, 0.3 m out from the lidar and 0.35 m below it, pitched about 4 deg down with
+    small seeded mounting errors."""
     if not 1 <= cameras <= MAX_CAMERAS:
         raise ConfigError(f"cameras must be 1..{MAX_CAMERAS}, got {cameras}")
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x716]))
-    T_base_lidar = from_xyz_rpy(0.1, 0.0, lidar_height_m, 0.0, 0.0, 0.0)
+    T_base_lidar = from_xyz_rpy(0.1, 0.0, lidar_height_m, lidar_roll_deg, 0.0, 0.0)
     T_base_cameras = []
     for i in range(cameras):
         yaw = CAMERA_YAWS_DEG[i]

@@ -77,7 +77,8 @@ class SimulationOptions:
     lidar frame of that time, as a moving real sensor does (the ``time`` field then matters).
     ``lidar``: ``spinning`` (``beams`` rings x ``columns`` firings) or ``rosette`` (a forward-looking
     non-repetitive Livox-like lidar: ``beams`` laser lines, 1..16, x ``columns`` samples per scan;
-    ``workflows.simulator.lidar``); a rosette scan has no organised form.
+    ``workflows.simulator.lidar``); a rosette scan has no organised form. ``lidar_roll_deg``: the lidar
+    mounted rolled about its forward axis (its rings then cross the forward camera's image slanted).
     """
 
     fmt: LogFormat = "mcap"
@@ -102,6 +103,7 @@ class SimulationOptions:
     deskew: bool = True
     max_range_m: float = 100.0
     lidar: str = "spinning"
+    lidar_roll_deg: float = 0.0
 
     def validate(self) -> None:
         """Raise ConfigError with a one-line message for any nonsense value."""
@@ -124,6 +126,10 @@ class SimulationOptions:
                 f"a rosette lidar has 1..{MAX_ROSETTE_LINES} lines (--beams), got {self.beams}",
             ),
             (self.lidar != "rosette" or not self.organized, "a rosette lidar's scans have no organised form"),
+            (
+                np.isfinite(self.lidar_roll_deg) and -180 <= self.lidar_roll_deg <= 180,
+                f"lidar-roll must be in -180..180 degrees, got {self.lidar_roll_deg}",
+            ),
             (64 <= self.columns <= 4096, f"columns must be in 64..4096, got {self.columns}"),
             (1 <= self.cameras <= MAX_CAMERAS, f"cameras must be in 1..{MAX_CAMERAS}, got {self.cameras}"),
             (
@@ -207,7 +213,8 @@ def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet:
     scene = build_scene(opts.scene, opts.seed)
     grid = build_grid(scene.triangles)
     motion = LoopMotion(scene.route, opts.speed)
-    rig = build_rig(opts.cameras, scene.lidar_height_m, opts.perturb_deg, opts.perturb_m, opts.seed)
+    rig = build_rig(opts.cameras, scene.lidar_height_m, opts.perturb_deg, opts.perturb_m, opts.seed,
+                    lidar_roll_deg=opts.lidar_roll_deg)
     lidar = LidarModel(
         beams=opts.beams,
         columns=opts.columns,
@@ -349,6 +356,7 @@ def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet:
         "frames": opts.frames,
         "lidar": {
             "pattern": opts.lidar,
+            "roll_deg": opts.lidar_roll_deg,
             "beams": opts.beams,
             "columns": opts.columns,
             "organized": opts.organized,
