@@ -15,7 +15,7 @@ from typing import Any
 
 from pipeline.errors import ConfigError, UsageError
 from workflows.cli import emit_json
-from workflows.simulator.lidar import LIDAR_PATTERNS, MAX_ROSETTE_LINES, SUPPORTED_BEAMS
+from workflows.simulator.lidar import DEFAULT_LAYOUT, LIDAR_PATTERNS, MAX_ROSETTE_LINES, SUPPORTED_BEAMS
 from workflows.simulator.scene import SCENES
 from workflows.simulator.truth import MAX_CAMERAS
 from workflows.simulator.write import SimulationOptions, simulate_log
@@ -99,15 +99,16 @@ def add_simulation_arguments(parser: argparse.ArgumentParser, frames: int, size:
         "--beams",
         type=int,
         default=None,
-        help=f"spinning: rings, one of {', '.join(map(str, SUPPORTED_BEAMS))} (default 64); rosette: laser "
-        f"lines, 1..{MAX_ROSETTE_LINES} (default 6)",
+        help=f"spinning: rings, one of {', '.join(map(str, SUPPORTED_BEAMS))} (default "
+        f"{DEFAULT_LAYOUT['spinning'][0]}); rosette: laser lines, 1..{MAX_ROSETTE_LINES} (default "
+        f"{DEFAULT_LAYOUT['rosette'][0]})",
     )
     parser.add_argument(
         "--columns",
         type=_int_range(64, 4096),
         default=None,
-        help="spinning: firings per revolution (default 1024); rosette: samples per line and scan (default 4000, "
-        "24k points per scan with 6 lines, as a Livox Avia)",
+        help=f"spinning: firings per revolution (default {DEFAULT_LAYOUT['spinning'][1]}); rosette: samples per "
+        f"line and scan (default {DEFAULT_LAYOUT['rosette'][1]}, as a Livox Avia with the default lines)",
     )
     parser.add_argument(
         "--cameras",
@@ -185,8 +186,8 @@ def options_from_args(args: argparse.Namespace) -> SimulationOptions:
         scene=args.scene,
         lidar=args.lidar,
         lidar_roll_deg=args.lidar_roll,
-        beams=args.beams if args.beams is not None else (6 if args.lidar == "rosette" else 64),
-        columns=args.columns if args.columns is not None else (4000 if args.lidar == "rosette" else 1024),
+        beams=args.beams if args.beams is not None else DEFAULT_LAYOUT[args.lidar][0],
+        columns=args.columns if args.columns is not None else DEFAULT_LAYOUT[args.lidar][1],
         cameras=args.cameras,
         fisheye=args.fisheye,
         panorama=args.panorama,

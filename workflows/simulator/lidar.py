@@ -25,6 +25,9 @@ SUPPORTED_BEAMS = (16, 32, 64, 128)
 LidarPattern = Literal["spinning", "rosette"]
 LIDAR_PATTERNS: tuple[str, ...] = ("spinning", "rosette")
 MAX_ROSETTE_LINES = 16
+DEFAULT_LAYOUT: dict[str, tuple[int, int]] = {"spinning": (64, 1024), "rosette": (6, 4000)}
+"""Rings (lines) and columns (samples per scan) of each pattern when not given: a 64-beam spinning lidar; a
+rosette of 6 lines x 4000, the 24k points per 0.1 s scan of a Livox Avia."""
 ROSETTE_HALF_ANGLE_DEG = 35.2
 """Half the circular field of view of the rosette (a Livox Mid-70's 70.4 deg)."""
 ROSETTE_PRISM_HZ = (97.3, 63.1)
