@@ -46,6 +46,7 @@ from workflows.simulator.scene import (
     surface_properties,
 )
 from workflows.simulator.truth import build_rig, perturb
+from workflows.simulator.write import SimulationOptions
 
 
 # ---------------------------------------------------------------- slow NumPy references
@@ -361,6 +362,19 @@ def test_rosette_lidar_fills_its_circular_field_of_view_without_repeating() -> N
         LidarModel(beams=64, pattern="rosette")
     with pytest.raises(ConfigError, match="pattern"):
         LidarModel(pattern="flash")  # type: ignore[arg-type]
+
+
+def test_simulation_options_take_the_lidar_patterns_layout_unless_given() -> None:
+    """Beams and columns left out follow the pattern (64 x 1024 spinning, 6 x 4000 rosette), in the Python
+    API as on the CLI; given ones are kept and checked against the pattern."""
+    rosette = SimulationOptions(lidar="rosette")
+    rosette.validate()
+    assert (rosette.beams, rosette.columns) == (6, 4000)
+    spinning = SimulationOptions(columns=512)
+    assert (spinning.beams, spinning.columns) == (64, 512)
+    assert SimulationOptions(lidar="rosette", beams=16).beams == 16
+    with pytest.raises(ConfigError, match="lines"):
+        SimulationOptions(lidar="rosette", beams=64).validate()
 
 
 def test_rosette_scan_returns_lie_on_their_rays_over_ground() -> None:

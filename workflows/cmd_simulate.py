@@ -97,7 +97,7 @@ def add_simulation_arguments(parser: argparse.ArgumentParser, frames: int, size:
     )
     parser.add_argument(
         "--beams",
-        type=int,
+        type=_int_range(1, max(SUPPORTED_BEAMS)),
         default=None,
         help=f"spinning: rings, one of {', '.join(map(str, SUPPORTED_BEAMS))} (default "
         f"{DEFAULT_LAYOUT['spinning'][0]}); rosette: laser lines, 1..{MAX_ROSETTE_LINES} (default "
@@ -186,8 +186,7 @@ def options_from_args(args: argparse.Namespace) -> SimulationOptions:
         scene=args.scene,
         lidar=args.lidar,
         lidar_roll_deg=args.lidar_roll,
-        beams=args.beams if args.beams is not None else DEFAULT_LAYOUT[args.lidar][0],
-        columns=args.columns if args.columns is not None else DEFAULT_LAYOUT[args.lidar][1],
+        **{name: value for name in ("beams", "columns") if (value := getattr(args, name)) is not None},
         cameras=args.cameras,
         fisheye=args.fisheye,
         panorama=args.panorama,

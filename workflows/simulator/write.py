@@ -34,6 +34,7 @@ from workflows.simulator.camera import (
     render,
 )
 from workflows.simulator.lidar import (
+    DEFAULT_LAYOUT,
     LIDAR_PATTERNS,
     MAX_ROSETTE_LINES,
     SUPPORTED_BEAMS,
@@ -79,13 +80,15 @@ class SimulationOptions:
     non-repetitive Livox-like lidar: ``beams`` laser lines, 1..16, x ``columns`` samples per scan;
     ``workflows.simulator.lidar``); a rosette scan has no organised form. ``lidar_roll_deg``: the lidar
     mounted rolled about its forward axis (its rings then cross the forward camera's image slanted).
+    ``beams`` / ``columns`` 0 (default): the pattern's (``DEFAULT_LAYOUT``: 64 x 1024 spinning, 6 x 4000
+    rosette), filled in on construction.
     """
 
     fmt: LogFormat = "mcap"
     frames: int = 20
     scene: str = "street"
-    beams: int = 64
-    columns: int = 1024
+    beams: int = 0
+    columns: int = 0
     cameras: int = 1
     fisheye: bool = False
     panorama: bool = False
@@ -104,6 +107,13 @@ class SimulationOptions:
     max_range_m: float = 100.0
     lidar: str = "spinning"
     lidar_roll_deg: float = 0.0
+
+    def __post_init__(self) -> None:
+        beams, columns = DEFAULT_LAYOUT.get(self.lidar, (0, 0))
+        if self.beams == 0:
+            object.__setattr__(self, "beams", beams)
+        if self.columns == 0:
+            object.__setattr__(self, "columns", columns)
 
     def validate(self) -> None:
         """Raise ConfigError with a one-line message for any nonsense value."""
