@@ -105,6 +105,7 @@ def test_kitti_default_settings_from_log_tf() -> None:
     assert result.score > result.initial_score
     assert result.verdict == "recalibrated", result.verdict_reason
     assert "y" not in result.weak_translation_axes, result.translation_profile
+    assert result.ring_spacing_deg == pytest.approx(0.36, abs=0.03) and not result.sparse_rings
     assert result.runtime_s < 60
 
 
@@ -256,6 +257,7 @@ def test_nuscenes_six_cameras_joint_with_ego_motion() -> None:
     result = calibrate(problem.frames, problem.T_init, config)
     assert result.gradient_viewpoint == "lidar"
     assert result.ring_smoothing_px == pytest.approx(9.8, rel=0.05)
+    assert result.ring_spacing_deg == pytest.approx(1.33, abs=0.05) and result.sparse_rings
     rot, _ = errors(result.T_camera_lidar, problem.T_true)
     assert rot <= 0.6, f"rotation error {rot:.3f} deg"
 

@@ -470,6 +470,22 @@ def test_ring_smoothing_adds_a_term_smoothed_across_the_rings(frame: Calibration
     assert np.ptp(on.evaluate(x) - auto.evaluate(x)) > 1e-4
 
 
+def test_a_lidar_with_sparse_rings_is_marked_so(frame: CalibrationFrame) -> None:
+    """The result carries the scan's ring spacing; above ``sparse_rings_above_deg`` (1 deg) the rig is marked
+    ``sparse_rings`` (its translation is rough): 16 beams over 22 deg (1.47 deg) are, the fixture's 64
+    (0.35 deg) are not, and neither verdict nor estimate depends on the mark."""
+    cheap = CalibrationConfig(search_deg=1.0, search_m=0.05, n_particles=16, max_iterations=4, repeats=1,
+                              profile_translation_m=0.0)
+    points, intensity = scan_lidar(make_scene(0), beams=16)
+    sparse_frame = dataclasses.replace(frame, points_xyz=points, feature=compute_lidar_feature(points, "intensity",
+                                                                                  intensity=intensity))
+    T = true_T_camera_lidar()
+    dense, sparse = calibrate([frame], T, cheap), calibrate([sparse_frame], T, cheap)
+    assert dense.ring_spacing_deg == pytest.approx(22.0 / 63, rel=0.02) and not dense.sparse_rings
+    assert sparse.ring_spacing_deg == pytest.approx(22.0 / 15, rel=0.02) and sparse.sparse_rings
+    assert not calibrate([sparse_frame], T, dataclasses.replace(cheap, sparse_rings_above_deg=2.0)).sparse_rings
+
+
 def test_unknown_feature_in_a_combination_is_a_config_error() -> None:
     from pipeline.config import CalibrationConfig as WorkflowCalibration
     from pipeline.config import feature_names

@@ -162,6 +162,15 @@ def test_calibration_notes_name_suspects_held_and_rough_translations() -> None:
         "/e: the log fixes the translation only weakly along x (image right), z (optical axis) of cam_e_optical: "
         "treat those components as rough",
         "/f: rotation only: the translation is held at the initial guess's"]
+    sparse = {"camera_topic": "/g", "verdict_reason": "", "translation_held": False, "translation_std_m": 0.03,
+              "sparse_rings": True, "ring_spacing_deg": 1.334}
+    assert calibration_notes([sparse, dict(sparse, camera_topic="/h", translation_held=True),
+                              dict(sparse, camera_topic="/i", verdict_reason="flat optimum"),
+                              dict(sparse, camera_topic="/j", sparse_rings=False, ring_spacing_deg=0.36)]) == [
+        "/g: the lidar's rings lie 1.33 deg apart: on rigs this sparse the translation has come out 18-36 cm off "
+        "with every check passing (nuScenes, simulated 16 and 32 beams): treat it as rough",
+        "/h: rotation only: the translation is held at the initial guess's",
+        "/i: suspect: flat optimum"]
 
 
 def test_calibrate_with_the_translation_held_says_so_and_keeps_the_camera_centre(

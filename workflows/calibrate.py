@@ -88,6 +88,8 @@ class PairCalibration:
             "translation_profile": [_finite_or_none(float(v)) for v in self.result.translation_profile],
             "weak_translation_axes": list(self.result.weak_translation_axes),
             "translation_axes_frame": self.estimate_frame or self.camera_frame,
+            "ring_spacing_deg": _finite_or_none(self.result.ring_spacing_deg),
+            "sparse_rings": self.result.sparse_rings,
             "frames_used": self.result.frames_used,
             "runtime_s": self.result.runtime_s,
             "motion_compensated": self.motion_compensated,

@@ -56,7 +56,8 @@ def write_config(config: Config, out_dir: Path) -> Path:
 def calibration_notes(calibrations: list[dict[str, Any]], rough_spread_m: float = 0.15) -> list[str]:
     """Lines under a calibration table (``PairCalibration.summary()`` dicts): why a pair is ``suspect``,
     where its translation was held, where the seeded runs spread more than ``rough_spread_m`` in
-    translation although the estimate was confirmed (e.g. nuScenes' 32 beams: 31 cm), and which translation
+    translation although the estimate was confirmed (e.g. nuScenes' 32 beams: 31 cm), where the lidar's rings are
+    sparse (``sparse_rings``: its translation is rough even where every check passes), and which translation
     components the log fixes only weakly (``weak_translation_axes``, of the camera frame
     ``translation_axes_frame``). A note that holds for every one of several pairs (a ``--joint`` rig) is
     given once, for "all N cameras"."""
@@ -71,6 +72,10 @@ def calibration_notes(calibrations: list[dict[str, Any]], rough_spread_m: float 
         if not c.get("verdict_reason") and spread_m is not None and spread_m > rough_spread_m:
             notes.append(f"the seeded runs spread {100 * spread_m:.0f} cm in translation (RMS from the estimate): "
                          "treat the translation as rough")
+        if c.get("sparse_rings") and not c.get("verdict_reason") and not c.get("translation_held"):
+            notes.append(f"the lidar's rings lie {c.get('ring_spacing_deg') or float('nan'):.2f} deg apart: on rigs "
+                         "this sparse the translation has come out 18-36 cm off with every check passing "
+                         "(nuScenes, simulated 16 and 32 beams): treat it as rough")
         weak = c.get("weak_translation_axes") or []
         if weak and not c.get("translation_held"):
             axes = ", ".join(CAMERA_AXIS_NAMES.get(a, a) for a in weak)

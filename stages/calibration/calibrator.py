@@ -81,6 +81,10 @@ class CalibrationResult:
             turn); NaN where not measured (held translation, profile off).
         weak_translation_axes: the axes whose ratio is below ``CalibrationConfig.weak_translation_ratio``:
             the log fixes those components only roughly.
+        ring_spacing_deg: median angle between the lidar's neighbouring rings over the frames, degrees
+            (``sphere_gradients.ring_spacing_rad``; NaN where the scans do not tell).
+        sparse_rings: ``ring_spacing_deg`` above ``CalibrationConfig.sparse_rings_above_deg``: the translation
+            of such rigs is rough (biased by decimetres) even where the verdict is confident.
     """
 
     T_camera_lidar: Mat4
@@ -107,6 +111,8 @@ class CalibrationResult:
     translation_held: bool = False
     translation_profile: NDArray[np.float64] = dataclasses.field(default_factory=lambda: np.full(3, np.nan))
     weak_translation_axes: list[str] = dataclasses.field(default_factory=list)
+    ring_spacing_deg: float = float("nan")
+    sparse_rings: bool = False
 
 
 PARAMETER_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz", "focal_scale")
@@ -270,6 +276,9 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     elif turned_deg > cfg.agree_rotation_deg:
         reason = (f"the seeded runs disagree; with the translation held they agree on a rotation {turned_deg:.2f} deg "
                   "from the best 6-DoF run's, so it is not only the translation they disagree on")
+    spacings = np.asarray(problem.ring_spacing_rad, dtype=np.float64)
+    ring_deg = float(np.degrees(np.median(spacings[np.isfinite(spacings)]))) if np.isfinite(spacings).any() \
+        else float("nan")
     verdict: Verdict
     if reason:
         verdict = "suspect"
@@ -286,4 +295,5 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         focal_scale=float(x_best[6]) if x_best.size > 6 else 1.0, metric=cfg.metric,
         gradient_viewpoint=cfg.viewpoint, ring_smoothing_px=max(problem.ring_smoothing_px),
         translation_held=hold, translation_profile=profile,
-        weak_translation_axes=weak)
+        weak_translation_axes=weak, ring_spacing_deg=ring_deg,
+        sparse_rings=bool(np.isfinite(ring_deg) and ring_deg > cfg.sparse_rings_above_deg))

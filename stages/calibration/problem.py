@@ -137,11 +137,12 @@ class CalibrationProblem:
         self.scorers: list[list[Scorer]] = []  # per frame: one per feature channel, then any ring-smoothed twins
         self.points_used: list[int] = []
         self.ring_smoothing_px: list[float] = []  # per frame, 0: none
+        self.ring_spacing_rad = [ring_spacing_rad(f.points_xyz) for f in frames]  # per frame, NaN: untold
         channels: list[list[Scorer]] = []
-        for f, T_c_c0 in zip(frames, self.T_camera_camera0, strict=True):
+        for f, T_c_c0, ring in zip(frames, self.T_camera_camera0, self.ring_spacing_rad, strict=True):
             scorers, n = self._prepare(f, T_c_c0 @ T0)
             channels.append(scorers)
-            sigma_px, across = self._ring_smoothing(f, T_c_c0 @ T0)
+            sigma_px, across = self._ring_smoothing(f, T_c_c0 @ T0, ring)
             smoothed = partial(GradientPlanes.blurred_along, direction_uv=across, sigma_px=sigma_px)
             self.scorers.append(scorers + (self._gom_twins(scorers, smoothed) if sigma_px > 0 else []))
             self.points_used.append(n)
@@ -158,10 +159,11 @@ class CalibrationProblem:
         self.min_counts = [np.maximum(config.min_points, np.floor(config.min_overlap_fraction * c)).astype(np.int64)
                            for c in init_counts]
 
-    def _ring_smoothing(self, f: CalibrationFrame, T_cam_lidar: Mat4) -> tuple[float, NDArray[np.float64]]:
-        """Across-ring smoothing of a frame's image gradients (``CalibrationConfig.ring_smoothing``): its
-        Gaussian sigma in pixels (0: none) and the image direction (2,) across the lidar's rings (its z axis
-        seen by the camera near the principal point)."""
+    def _ring_smoothing(self, f: CalibrationFrame, T_cam_lidar: Mat4, ring: float) -> tuple[
+            float, NDArray[np.float64]]:
+        """Across-ring smoothing of a frame's image gradients (``CalibrationConfig.ring_smoothing``) for rings
+        ``ring`` radians apart: its Gaussian sigma in pixels (0: none) and the image direction (2,) across the
+        lidar's rings (its z axis seen by the camera near the principal point)."""
         cfg = self.config
         none = (0.0, np.zeros(2))
         if cfg.metric != "gom" or cfg.ring_smoothing == "off":
@@ -171,7 +173,6 @@ class CalibrationProblem:
             return none
         across = np.array([f.camera.fx * up[0], f.camera.fy * up[1]])
         px_per_rad = float(np.linalg.norm(across) / np.hypot(up[0], up[1]))
-        ring = ring_spacing_rad(f.points_xyz)
         if not np.isfinite(ring):
             return none
         sigma_px = cfg.ring_smoothing_fraction * ring * px_per_rad
