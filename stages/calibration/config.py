@@ -141,10 +141,10 @@ class CalibrationConfig:
             6 starts: 19-36 cm; simulated 32 beams 20-34 cm; simulated 16 beams 18 cm). With rings 0.42 deg
             apart or finer: KITTI (0.36 deg) 4-7 cm, PJLab rig2 (0.17 deg) 14-16 cm, simulated 64 beams 1-3 cm;
             PJLab rig1's 34-46 cm are named by the translation profile (``weak_move_max_m``). Between 0.42 and
-            1.33 deg is unmeasured. Why, on the
-            simulated 32 beams: near ground lines up with the image only by chance there (GOM 0.49 vs 0.79 with
-            64 beams), and eq. 11's denominator lets a pose 30 cm off score higher by moving those points onto
-            weaker image gradients (README). The estimate and verdict are unchanged; the result says so.
+            1.33 deg is unmeasured. Why, on the simulated 32 beams: near ground lines up with the image only
+            by chance there (GOM 0.49 vs 0.79 with 64 beams), and eq. 11's denominator lets a pose 30 cm off
+            score higher by moving those points onto weaker image gradients (README). The estimate and verdict
+            are unchanged; the result says so.
         agree_rotation_deg, agree_translation_m: with ``repeats`` >= 2 the returned run must be confirmed
             by another seeded run landing within both of it (the accuracy asked of the real logs: 0.5 deg,
             15 cm); while it is not, up to ``confirm_repeats`` further seeded runs are made (they only
