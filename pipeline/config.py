@@ -162,7 +162,8 @@ class CalibrationConfig:
         gradient_fit: ``paper`` (Algorithm 1), ``lsq`` (least-squares gradient over the neighbours) or
             ``auto`` (lsq on the lidar's sphere, paper on the camera's).
         gradient_neighbours: ``angle`` (paper), ``sampling`` (neighbours across a sparse lidar's rings) or
-            ``auto`` (sampling on the lidar's sphere, angle on the camera's).
+            ``auto`` (sampling on the lidar's sphere, angle on the camera's and where rings over 1 deg apart
+            cross the image slanted more than 30 deg: ``CalibrationConfig.slanted_rings_above_deg``).
         explore: GOM swarm's first 30 iterations against image gradients blurred 3x more (wider basins):
             ``on``, ``off`` or ``auto`` (default: on for boxes wider than 5 deg or 0.5 m); evidence in
             ``stages.calibration.config.CalibrationConfig``.

@@ -258,6 +258,7 @@ def test_nuscenes_six_cameras_joint_with_ego_motion() -> None:
     assert result.gradient_viewpoint == "lidar"
     assert result.ring_smoothing_px == pytest.approx(9.8, rel=0.05)
     assert result.ring_spacing_deg == pytest.approx(1.33, abs=0.05) and result.sparse_rings
+    assert result.ring_slant_deg < 5.0  # sparse, but level with the cameras: not the slanted-rings case
     rot, _ = errors(result.T_camera_lidar, problem.T_true)
     assert rot <= 0.6, f"rotation error {rot:.3f} deg"
 

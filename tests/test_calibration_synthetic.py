@@ -28,7 +28,7 @@ from pipeline.transforms import (
     translation_error_m,
 )
 from stages.calibration import CalibrationConfig, CalibrationFrame, calibrate, compensate_ego_motion
-from stages.calibration.calibrator import agreeing_repeats, box_edge
+from stages.calibration.calibrator import agreeing_repeats, box_edge, resolve_auto_rules
 from stages.calibration.frame import build_frame, default_blur_sigma_px
 from stages.calibration.metrics import GomScorer, camera_params
 from stages.calibration.problem import CalibrationProblem
@@ -128,15 +128,22 @@ def render_image(rects: list[Rect], camera: CameraModel,
     return np.asarray(np.clip(cv2.GaussianBlur(img, (0, 0), 0.7), 0, 255), dtype=np.uint8)
 
 
+def roll_about_x(roll_deg: float) -> NDArray[np.float64]:
+    """4x4 rotation by ``roll_deg`` about the lidar's forward (x) axis."""
+    c, s = np.cos(np.radians(roll_deg)), np.sin(np.radians(roll_deg))
+    return make_T(np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]]), np.zeros(3))
+
+
 def scan_lidar(rects: list[Rect], beams: int = 64, azimuth_step_deg: float = 0.2,
-               fov_deg: float = 70.0) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Points (N, 3) and intensity (N,) of a spinning lidar at the origin (front sector only)."""
+               fov_deg: float = 70.0, roll_deg: float = 0.0) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Points (N, 3) and intensity (N,) of a spinning lidar at the origin (front sector only), in its own
+    frame; ``roll_deg``: mounted rolled about its forward axis (scene frame = its frame @ ``roll_about_x``)."""
     elev = np.radians(np.linspace(-20.0, 2.0, beams))
     azim = np.radians(np.arange(-fov_deg, fov_deg, azimuth_step_deg))
     el, az = np.meshgrid(elev, azim, indexing="ij")
     dirs = np.column_stack([np.cos(el.ravel()) * np.cos(az.ravel()), np.cos(el.ravel()) * np.sin(az.ravel()),
                             np.sin(el.ravel())])
-    t, value = ray_cast(rects, np.zeros(3), dirs)
+    t, value = ray_cast(rects, np.zeros(3), dirs @ roll_about_x(roll_deg)[:3, :3].T)
     hit = np.isfinite(t) & (t < 60)
     return dirs[hit] * t[hit, None], value[hit]
 
@@ -484,6 +491,37 @@ def test_a_lidar_with_sparse_rings_is_marked_so(frame: CalibrationFrame) -> None
     assert dense.ring_spacing_deg == pytest.approx(22.0 / 63, rel=0.02) and not dense.sparse_rings
     assert sparse.ring_spacing_deg == pytest.approx(22.0 / 15, rel=0.02) and sparse.sparse_rings
     assert not calibrate([sparse_frame], T, dataclasses.replace(cheap, sparse_rings_above_deg=2.0)).sparse_rings
+
+
+def test_sparse_rings_slanted_across_the_image_are_suspect(frame: CalibrationFrame) -> None:
+    """A lidar rolled 45 deg about its forward axis crosses the image with its rings slanted 45 deg
+    (``ring_slant_deg``); with 16 beams (rings 1.47 deg apart) that makes the verdict ``suspect`` (such rigs
+    have come out 0.2-1.7 deg off) and the ``auto`` neighbour rule ``angle`` (the lidar sphere's stretch
+    assumes level rings). The same roll with 64 beams, or 16 beams level, keeps both as they were."""
+    cheap = CalibrationConfig(search_deg=1.0, search_m=0.05, n_particles=16, max_iterations=4, repeats=1,
+                              profile_translation_m=0.0)
+
+    def scanned(beams: int, roll_deg: float) -> tuple[list[CalibrationFrame], NDArray[np.float64]]:
+        points, intensity = scan_lidar(make_scene(0), beams=beams, roll_deg=roll_deg)
+        feature = compute_lidar_feature(points, "intensity", intensity=intensity)
+        return [dataclasses.replace(frame, points_xyz=points, feature=feature)], \
+            true_T_camera_lidar() @ roll_about_x(roll_deg)
+
+    sparse_rolled = calibrate(*scanned(16, 45.0), cheap)
+    assert sparse_rolled.ring_slant_deg == pytest.approx(45.0, abs=1.0) and sparse_rolled.sparse_rings
+    assert sparse_rolled.verdict == "suspect" and "slanted 46 deg" in sparse_rolled.verdict_reason
+    assert "by angle, auto" in sparse_rolled.verdict_reason
+    assert resolve_auto_rules(*scanned(16, 45.0), cheap).neighbours_by == "angle"
+    sampling = dataclasses.replace(cheap, neighbours_by="sampling")
+    assert resolve_auto_rules(*scanned(16, 45.0), sampling).neighbours_by == "sampling"  # given, not overruled
+    above = dataclasses.replace(cheap, slanted_rings_above_deg=50.0)
+    assert "slanted" not in calibrate(*scanned(16, 45.0), above).verdict_reason
+    assert resolve_auto_rules(*scanned(16, 45.0), above).neighbours_by == "auto"
+    for beams, roll_deg in ((64, 45.0), (16, 0.0)):
+        result = calibrate(*scanned(beams, roll_deg), cheap)
+        assert result.ring_slant_deg == pytest.approx(roll_deg, abs=1.0)
+        assert result.verdict != "suspect", (beams, roll_deg, result.verdict_reason)
+        assert resolve_auto_rules(*scanned(beams, roll_deg), cheap).neighbours_by == "auto"
 
 
 def test_unknown_feature_in_a_combination_is_a_config_error() -> None:

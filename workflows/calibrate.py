@@ -90,6 +90,7 @@ class PairCalibration:
             "translation_axes_frame": self.estimate_frame or self.camera_frame,
             "ring_spacing_deg": _finite_or_none(self.result.ring_spacing_deg),
             "sparse_rings": self.result.sparse_rings,
+            "ring_slant_deg": _finite_or_none(self.result.ring_slant_deg),
             "frames_used": self.result.frames_used,
             "runtime_s": self.result.runtime_s,
             "motion_compensated": self.motion_compensated,

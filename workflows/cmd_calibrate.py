@@ -45,7 +45,7 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
                    help="lidar gradient: Algorithm 1 or least squares; auto (default): lsq with the lidar viewpoint")
     p.add_argument("--gradient-neighbours", choices=["auto", "angle", "sampling"],
                    help="sphere neighbours: nearest by angle (paper) or across rings too; auto (default): "
-                        "across rings with the lidar viewpoint")
+                        "across rings with the lidar viewpoint, unless sparse rings cross the image slanted > 30 deg")
     p.add_argument("--explore", choices=["auto", "on", "off"],
                    help="GOM swarm explores on image gradients blurred 3x more for its first 30 iterations; "
                         "auto (default): on for --search-deg above 5 or --search-m above 0.5")

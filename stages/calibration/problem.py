@@ -112,6 +112,26 @@ def _image_order(points_cam: NDArray[np.float64], camera: CameraModel) -> NDArra
     return np.asarray(np.lexsort((uv[:, 0], np.floor(uv[:, 1] / 4.0))), dtype=np.int64)
 
 
+def across_rings_uv(camera: CameraModel, T_camera_lidar: Mat4) -> NDArray[np.float64] | None:
+    """Image direction (2,), in pixels, across a spinning lidar's rings near the principal point: the
+    lidar's z axis as the camera sees it. None where the camera looks along that axis (the rings circle
+    the image)."""
+    up = np.asarray(T_camera_lidar, dtype=np.float64)[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    if np.hypot(up[0], up[1]) < 0.3:
+        return None
+    return np.array([camera.fx * up[0], camera.fy * up[1]])
+
+
+def ring_slant_deg(camera: CameraModel, T_camera_lidar: Mat4) -> float:
+    """How far a spinning lidar's rings cross the image slanted, degrees in [0, 90]: the angle between the
+    image's vertical and ``across_rings_uv`` (0 for a lidar level with the camera; a lidar rolled about the
+    camera's optical axis: its roll). NaN where the rings circle the image."""
+    across = across_rings_uv(camera, T_camera_lidar)
+    if across is None:
+        return float("nan")
+    return float(np.degrees(np.arctan2(abs(across[0]), abs(across[1]))))
+
+
 class CalibrationProblem:
     """Prepared frames and the batched objective ``evaluate(x (P, D)) -> (P,)`` of a calibration."""
 
@@ -138,6 +158,8 @@ class CalibrationProblem:
         self.points_used: list[int] = []
         self.ring_smoothing_px: list[float] = []  # per frame, 0: none
         self.ring_spacing_rad = [ring_spacing_rad(f.points_xyz) for f in frames]  # per frame, NaN: untold
+        self.ring_slant_deg = [ring_slant_deg(f.camera, T_c_c0 @ T0)  # per frame at the initial guess, NaN: untold
+                               for f, T_c_c0 in zip(frames, self.T_camera_camera0, strict=True)]
         channels: list[list[Scorer]] = []
         for f, T_c_c0, ring in zip(frames, self.T_camera_camera0, self.ring_spacing_rad, strict=True):
             scorers, n = self._prepare(f, T_c_c0 @ T0)
@@ -168,13 +190,11 @@ class CalibrationProblem:
         none = (0.0, np.zeros(2))
         if cfg.metric != "gom" or cfg.ring_smoothing == "off":
             return none
+        across = across_rings_uv(f.camera, T_cam_lidar)
+        if across is None or not np.isfinite(ring):
+            return none
         up = np.asarray(T_cam_lidar, dtype=np.float64)[:3, :3] @ np.array([0.0, 0.0, 1.0])
-        if np.hypot(up[0], up[1]) < 0.3:  # the camera looks along the lidar's axis: rings circle the image
-            return none
-        across = np.array([f.camera.fx * up[0], f.camera.fy * up[1]])
         px_per_rad = float(np.linalg.norm(across) / np.hypot(up[0], up[1]))
-        if not np.isfinite(ring):
-            return none
         sigma_px = cfg.ring_smoothing_fraction * ring * px_per_rad
         if cfg.ring_smoothing == "auto" and sigma_px <= default_blur_sigma_px(f.camera.width):
             return none
