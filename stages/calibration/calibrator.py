@@ -297,9 +297,9 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         reason = "flat optimum"
     elif slanted_sparse_rings(ring_deg, slant_deg, cfg):
         reason = (f"the lidar's rings lie {ring_deg:.2f} deg apart and cross the image slanted {slant_deg:.0f} deg: "
-                  "with sparse rings rolled this far to the camera the estimate has come out 0.2-0.8 deg off "
-                  f"(sphere neighbours by angle{', auto' if auto_angle else ''}; 0.2-1.7 deg by the default's "
-                  "level-ring stretch, simulated 32 beams rolled 35-45 deg): treat it as unconfirmed")
+                  "sparse rings rolled this far to the camera have come out 0.2-0.6 deg off with 32 beams and 1-7 deg "
+                  f"with 16 (simulated, rolled 35-45 deg; sphere neighbours by angle{', auto' if auto_angle else ''}): "
+                  "treat the estimate as unconfirmed")
     elif edge:
         reason = (f"the estimate is at the edge of the search box ({'; '.join(edge)}): the best pose may lie "
                   "outside it; check the initial guess or widen --search-deg / --search-m")

@@ -154,7 +154,8 @@ class CalibrationConfig:
             and ``sampling``; rolled 35, 40, 45 deg: ``sampling`` 0.23-0.69, 1.10-1.14, 1.36-1.67 deg (one of
             six ``recalibrated``), ``angle`` 0.30-0.57, 0.60-0.61, 0.21 deg (11-23 cm). ``angle`` had the better
             rotation in every slanted case, yet 0.3-0.76 deg (stop 26's second log) is not the accuracy asked,
-            so the verdict stays ``suspect``. A 64-beam lidar rolled 45 deg is not affected (0.03 deg / 2 cm).
+            so the verdict stays ``suspect``. 16 beams x 1800 rolled 45 deg defeat both: ``angle`` 7.1 and 1.7
+            deg, ``sampling`` 1.0 and 2.2 deg. A 64-beam lidar rolled 45 deg is not affected (0.03 deg / 2 cm).
         agree_rotation_deg, agree_translation_m: with ``repeats`` >= 2 the returned run must be confirmed
             by another seeded run landing within both of it (the accuracy asked of the real logs: 0.5 deg,
             15 cm); while it is not, up to ``confirm_repeats`` further seeded runs are made (they only
