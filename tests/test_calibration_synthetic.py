@@ -517,6 +517,8 @@ def test_sparse_rings_slanted_across_the_image_are_suspect(frame: CalibrationFra
     above = dataclasses.replace(cheap, slanted_rings_above_deg=50.0)
     assert "slanted" not in calibrate(*scanned(16, 45.0), above).verdict_reason
     assert resolve_auto_rules(*scanned(16, 45.0), above).neighbours_by == "auto"
+    nmi = calibrate(*scanned(16, 45.0), dataclasses.replace(cheap, metric="nmi"))  # measured on GOM only
+    assert nmi.ring_slant_deg == pytest.approx(45.0, abs=1.0) and "slanted" not in nmi.verdict_reason
     for beams, roll_deg in ((64, 45.0), (16, 0.0)):
         result = calibrate(*scanned(beams, roll_deg), cheap)
         assert result.ring_slant_deg == pytest.approx(roll_deg, abs=1.0)

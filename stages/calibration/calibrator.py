@@ -295,7 +295,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         reason = f"GOM {score:.3f} is below {cfg.gom_suspect_below}"
     elif flat:
         reason = "flat optimum"
-    elif slanted_sparse_rings(ring_deg, slant_deg, cfg):
+    elif cfg.metric == "gom" and slanted_sparse_rings(ring_deg, slant_deg, cfg):  # measured on GOM only
         reason = (f"the lidar's rings lie {ring_deg:.2f} deg apart and cross the image slanted {slant_deg:.0f} deg: "
                   "sparse rings rolled this far to the camera have come out 0.2-0.6 deg off with 32 beams and 1-7 deg "
                   f"with 16 (simulated, rolled 35-45 deg; sphere neighbours by angle{', auto' if auto_angle else ''}): "

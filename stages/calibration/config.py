@@ -146,7 +146,7 @@ class CalibrationConfig:
             score higher by moving those points onto weaker image gradients (README). The estimate and verdict
             are unchanged; the result says so.
         slanted_rings_above_deg: sparse rings (``sparse_rings_above_deg``) that cross the image slanted more
-            than this (``CalibrationResult.ring_slant_deg``: a lidar rolled to the camera) make the verdict
+            than this (``CalibrationResult.ring_slant_deg``: a lidar rolled to the camera) make a GOM verdict
             ``suspect``, and ``neighbours_by="auto"`` searches the lidar sphere's neighbours by ``angle``
             (``sampling``'s stretch of the polar angle assumes rings that run level across the image). Simulated
             street, 32 beams x 1024 columns rolled about the forward axis, intensity, 3 runs, 2 starts 2 deg /
