@@ -507,23 +507,25 @@ def test_sparse_rings_slanted_across_the_image_are_suspect(frame: CalibrationFra
         return [dataclasses.replace(frame, points_xyz=points, feature=feature)], \
             true_T_camera_lidar() @ roll_about_x(roll_deg)
 
-    sparse_rolled = calibrate(*scanned(16, 45.0), cheap)
+    rolled = scanned(16, 45.0)
+    sparse_rolled = calibrate(*rolled, cheap)
     assert sparse_rolled.ring_slant_deg == pytest.approx(45.0, abs=1.0) and sparse_rolled.sparse_rings
     assert sparse_rolled.verdict == "suspect" and "slanted 46 deg" in sparse_rolled.verdict_reason
     assert "by angle, auto" in sparse_rolled.verdict_reason
-    assert resolve_auto_rules(*scanned(16, 45.0), cheap).neighbours_by == "angle"
+    assert resolve_auto_rules(*rolled, cheap).neighbours_by == "angle"
     sampling = dataclasses.replace(cheap, neighbours_by="sampling")
-    assert resolve_auto_rules(*scanned(16, 45.0), sampling).neighbours_by == "sampling"  # given, not overruled
+    assert resolve_auto_rules(*rolled, sampling).neighbours_by == "sampling"  # given, not overruled
     above = dataclasses.replace(cheap, slanted_rings_above_deg=50.0)
-    assert "slanted" not in calibrate(*scanned(16, 45.0), above).verdict_reason
-    assert resolve_auto_rules(*scanned(16, 45.0), above).neighbours_by == "auto"
-    nmi = calibrate(*scanned(16, 45.0), dataclasses.replace(cheap, metric="nmi"))  # measured on GOM only
+    assert "slanted" not in calibrate(*rolled, above).verdict_reason
+    assert resolve_auto_rules(*rolled, above).neighbours_by == "auto"
+    nmi = calibrate(*rolled, dataclasses.replace(cheap, metric="nmi"))  # measured on GOM only
     assert nmi.ring_slant_deg == pytest.approx(45.0, abs=1.0) and "slanted" not in nmi.verdict_reason
     for beams, roll_deg in ((64, 45.0), (16, 0.0)):
-        result = calibrate(*scanned(beams, roll_deg), cheap)
+        other = scanned(beams, roll_deg)
+        result = calibrate(*other, cheap)
         assert result.ring_slant_deg == pytest.approx(roll_deg, abs=1.0)
         assert result.verdict != "suspect", (beams, roll_deg, result.verdict_reason)
-        assert resolve_auto_rules(*scanned(beams, roll_deg), cheap).neighbours_by == "auto"
+        assert resolve_auto_rules(*other, cheap).neighbours_by == "auto"
 
 
 def test_unknown_feature_in_a_combination_is_a_config_error() -> None:
