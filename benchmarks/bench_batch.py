@@ -30,10 +30,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline.config import load_config  # noqa: E402
-from workflows.batch import run_batch  # noqa: E402
-from workflows.process import load_result  # noqa: E402
-from workflows.simulator.write import SimulationOptions, simulate_log  # noqa: E402
+from fleetcal.pipeline.config import load_config  # noqa: E402
+from fleetcal.workflows.batch import run_batch  # noqa: E402
+from fleetcal.workflows.process import load_result  # noqa: E402
+from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log  # noqa: E402
 
 
 def main() -> None:

@@ -30,7 +30,7 @@ WIDTH, HEIGHT = 1920, 1200
 
 
 def simulate(path: Path, frames: int) -> None:
-    from workflows.simulator.write import SimulationOptions, simulate_log
+    from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log
 
     simulate_log(path, SimulationOptions(frames=frames, scene="street", beams=64, columns=1024, width=WIDTH,
                                          height=HEIGHT, seed=1))
@@ -49,10 +49,10 @@ def peak_rss_mb() -> float:
 
 def calibrate_child(path: str, frames: int) -> None:
     """Child process: run the calibrate workflow on ``frames`` pairs; print seconds and peak RSS (MB)."""
-    from pipeline.config import Config
-    from readers.open import open_log
-    from workflows.calibrate import run_calibration
-    from workflows.simulator.truth import load_truth, truth_path_for
+    from fleetcal.pipeline.config import Config
+    from fleetcal.readers.open import open_log
+    from fleetcal.workflows.calibrate import run_calibration
+    from fleetcal.workflows.simulator.truth import load_truth, truth_path_for
 
     truth = load_truth(truth_path_for(Path(path)))
     config = Config()

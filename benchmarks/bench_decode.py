@@ -32,9 +32,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
-from readers.decode import decode_pointcloud2
-from stages.sinks import ros_messages as rm
-from stages.sinks.log_writer import LogWriter
+from fleetcal.readers.decode import decode_pointcloud2
+from fleetcal.stages.sinks import ros_messages as rm
+from fleetcal.stages.sinks.log_writer import LogWriter
 
 TOPIC = "/lidar/points"
 FORMATS = {
@@ -101,7 +101,7 @@ def plain_iteration(path: Path, fmt: str) -> int:
 
 def ours(path: Path) -> tuple[int, float]:
     """open_log + deserialize + decode_pointcloud2; returns (points decoded, seconds in decode alone)."""
-    from readers.open import open_log
+    from fleetcal.readers.open import open_log
 
     points = 0
     decode_s = 0.0

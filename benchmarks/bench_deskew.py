@@ -27,15 +27,15 @@ from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.config import Config
-from pipeline.frames import LidarFrame
-from pipeline.transforms import invert
-from readers.decode.pointcloud2 import decode_pointcloud2
-from readers.open import open_log
-from stages.registration.odometry import VoxelMap, relative_translation_drift, run_odometry
-from workflows.mapping import registration_config
-from workflows.simulator.truth import load_truth, truth_path_for
-from workflows.simulator.write import SimulationOptions, simulate_log
+from fleetcal.pipeline.config import Config
+from fleetcal.pipeline.frames import LidarFrame
+from fleetcal.pipeline.transforms import invert
+from fleetcal.readers.decode.pointcloud2 import decode_pointcloud2
+from fleetcal.readers.open import open_log
+from fleetcal.stages.registration.odometry import VoxelMap, relative_translation_drift, run_odometry
+from fleetcal.workflows.mapping import registration_config
+from fleetcal.workflows.simulator.truth import load_truth, truth_path_for
+from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log
 
 CACHE = Path("/tmp/fleetcal_bench_deskew")
 

@@ -29,9 +29,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline.engine import Engine, warm_up_kernels  # noqa: E402
-from stages.image_gradients import compute_image_gradients  # noqa: E402
-from stages.lidar_features import compute_lidar_feature, grid_neighbours, lidar_frame_feature  # noqa: E402
+from fleetcal.pipeline.engine import Engine, warm_up_kernels  # noqa: E402
+from fleetcal.stages.image_gradients import compute_image_gradients  # noqa: E402
+from fleetcal.stages.lidar_features import compute_lidar_feature, grid_neighbours, lidar_frame_feature  # noqa: E402
 
 KITTI = ROOT.parent / "shared" / "data" / "logs" / "kitti_2011_09_26.mcap"
 LIDAR_TOPIC = "/lidar/points"
@@ -65,8 +65,8 @@ def _synthetic_scan(n_points: int, rng: np.random.Generator) -> tuple[np.ndarray
 
 def _real_or_synthetic() -> tuple[str, np.ndarray, np.ndarray, np.ndarray]:
     if KITTI.exists():
-        from readers.frames import iter_camera_frames, iter_lidar_frames
-        from readers.open import open_log
+        from fleetcal.readers.frames import iter_camera_frames, iter_lidar_frames
+        from fleetcal.readers.open import open_log
 
         with open_log(KITTI) as reader:
             scan = next(iter_lidar_frames(reader, "/kitti/velo/pointcloud"))
@@ -81,7 +81,7 @@ def _real_or_synthetic() -> tuple[str, np.ndarray, np.ndarray, np.ndarray]:
 def bench_stages(repeats: int) -> None:
     from scipy.spatial import cKDTree
 
-    from stages import lidar_feature_kernels
+    from fleetcal.stages import lidar_feature_kernels
 
     warm_up_kernels()
     source, pts, intensity, image = _real_or_synthetic()
@@ -129,8 +129,8 @@ def bench_stages(repeats: int) -> None:
 
 
 def write_log(path: Path, frames: int, n_points: int) -> None:
-    from stages.sinks import ros_messages as rm
-    from stages.sinks.log_writer import LogWriter
+    from fleetcal.stages.sinks import ros_messages as rm
+    from fleetcal.stages.sinks.log_writer import LogWriter
 
     rng = np.random.default_rng(1)
     base, _ = _synthetic_scan(n_points, rng)

@@ -28,12 +28,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.camera_model import CameraModel
-from pipeline.config import Config
-from stages.calibration import CalibrationResult, GomScorer, GradientPlanes, calibrate
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.pipeline.config import Config
+from fleetcal.stages.calibration import CalibrationResult, GomScorer, GradientPlanes, calibrate
+from fleetcal.workflows.calibrate import solver_config
 from tests.test_calibration_real import LOGS, errors, load_real_frames
 from tests.test_calibration_synthetic import perturb
-from workflows.calibrate import solver_config
 
 CASES = {  # feature: the workflow default (range+normals) unless named
     "kitti": ("kitti_2011_09_26.mcap", {}),
@@ -119,8 +119,8 @@ def sim_table(names: list[str], metrics: list[str]) -> None:
     """Simulated logs (10 frames, 64 beams unless named x 512 columns, 640x360), exact truth."""
     import tempfile
 
-    from pipeline.transforms import rotation_error_deg, translation_error_m
-    from stages.calibration import CalibrationConfig
+    from fleetcal.pipeline.transforms import rotation_error_deg, translation_error_m
+    from fleetcal.stages.calibration import CalibrationConfig
     from tests.test_calibration_sim import simulated_frames
 
     print(f"\n{'simulated':18s} {'metric':9s} {'rot_deg':>8s} {'trans_m':>8s} {'score':>8s} {'init':>8s} "
@@ -143,8 +143,8 @@ def rings_study(n: int) -> None:
     """Simulated VLP-16 from ``n`` starts 2 deg / 10 cm off (seeds 7, 8, ...): ring smoothing auto vs off."""
     import tempfile
 
-    from pipeline.transforms import rotation_error_deg, translation_error_m
-    from stages.calibration import CalibrationConfig
+    from fleetcal.pipeline.transforms import rotation_error_deg, translation_error_m
+    from fleetcal.stages.calibration import CalibrationConfig
     from tests.test_calibration_sim import simulated_frames
 
     print(f"\nsimulated VLP-16 (16 rings x 1800 columns, street, intensity) from 2 deg / 10 cm, {n} starts")
@@ -170,8 +170,8 @@ def sweep_study(speeds: list[float]) -> None:
     by their own time field vs each scan by its stamp (``calibration.point_times``)."""
     import tempfile
 
-    from pipeline.transforms import rotation_error_deg, translation_error_m
-    from stages.calibration import CalibrationConfig
+    from fleetcal.pipeline.transforms import rotation_error_deg, translation_error_m
+    from fleetcal.stages.calibration import CalibrationConfig
     from tests.test_calibration_sim import simulated_frames
 
     print("\nmotion during the sweep (simulated street, not de-skewed), from 5 deg / 0.5 m, box 10 deg / 1 m")

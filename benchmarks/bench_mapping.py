@@ -27,11 +27,11 @@ from numpy.typing import NDArray
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.frames import LidarFrame
-from pipeline.transforms import invert
-from stages.colorize import colorize, fill_unseen
-from stages.registration import RegistrationConfig, run_odometry
-from stages.registration.odometry import relative_translation_drift
+from fleetcal.pipeline.frames import LidarFrame
+from fleetcal.pipeline.transforms import invert
+from fleetcal.stages.colorize import colorize, fill_unseen
+from fleetcal.stages.registration import RegistrationConfig, run_odometry
+from fleetcal.stages.registration.odometry import relative_translation_drift
 
 CACHE = Path("/tmp/fleetcal_bench_mapping")
 
@@ -63,13 +63,13 @@ def simulate_sequence(
     walls (about 28 m ahead and behind), which pin the along-wall motion geometrically; 12 m hides them
     and leaves the along-wall direction to texture alone (the paper's Fig. 3 situation).
     """
-    from workflows.simulator.camera import SimCamera, pinhole_camera, render
-    from workflows.simulator.lidar import LidarModel, simulate_scan
-    from workflows.simulator.motion import LoopMotion
-    from workflows.simulator.raycast import build_grid
-    from workflows.simulator.scene import build_scene
-    from workflows.simulator.truth import build_rig
-    from workflows.simulator.write import DEFAULT_SPEED_M_S
+    from fleetcal.workflows.simulator.camera import SimCamera, pinhole_camera, render
+    from fleetcal.workflows.simulator.lidar import LidarModel, simulate_scan
+    from fleetcal.workflows.simulator.motion import LoopMotion
+    from fleetcal.workflows.simulator.raycast import build_grid
+    from fleetcal.workflows.simulator.scene import build_scene
+    from fleetcal.workflows.simulator.truth import build_rig
+    from fleetcal.workflows.simulator.write import DEFAULT_SPEED_M_S
 
     speed = DEFAULT_SPEED_M_S[scene_name] if speed_m_s is None else speed_m_s
     size = f"{image_size[0]}x{image_size[1]}"

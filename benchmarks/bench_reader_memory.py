@@ -48,7 +48,7 @@ def write_big_mcap(path: Path, total_bytes: int) -> int:
 
 def iterate(path: str) -> None:
     """Child process: stream every message, print count, bytes, seconds and peak RSS (MB)."""
-    from readers.open import open_log
+    from fleetcal.readers.open import open_log
 
     start = time.perf_counter()
     count = 0

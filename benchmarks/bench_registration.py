@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline.transforms import apply, from_xyz_rpy, invert, rotation_error_deg, translation_error_m  # noqa: E402
+from fleetcal.pipeline.transforms import apply, from_xyz_rpy, invert, rotation_error_deg, translation_error_m  # noqa: E402
 
 SHARED_LOGS = ROOT.parent / "shared" / "data" / "logs"
 
@@ -70,8 +70,8 @@ def load_outdoor() -> Pair | None:
     log = SHARED_LOGS / "outdoor_scan_pair.mcap"
     if not log.exists():
         return None
-    from readers.decode import decode_pointcloud2
-    from readers.open import open_log
+    from fleetcal.readers.decode import decode_pointcloud2
+    from fleetcal.readers.open import open_log
 
     truth = json.loads(log.with_suffix(".truth.json").read_text())
     reader = open_log(log)
@@ -172,7 +172,7 @@ def _row(pair: Pair, method: str, prep_ms: float, align_ms: float, T: NDArray[np
 
 
 def bench_fleetcal(pair: Pair, args: argparse.Namespace) -> list[Row]:
-    from stages.registration import RegistrationConfig, prepare_pointset, register
+    from fleetcal.stages.registration import RegistrationConfig, prepare_pointset, register
 
     modes = [("gicp", "none"), ("mcgicp", "intensity"), ("color_icp", "intensity")]
     if "r" in pair.source.channels:

@@ -26,12 +26,12 @@ def main() -> None:
     args = parser.parse_args()
 
     started = time.perf_counter()
-    from workflows.simulator.camera import SimCamera, pinhole_camera, render
-    from workflows.simulator.lidar import LidarModel, simulate_scan
-    from workflows.simulator.motion import LoopMotion
-    from workflows.simulator.raycast import build_grid, default_threads
-    from workflows.simulator.scene import build_scene
-    from workflows.simulator.write import SimulationOptions, simulate_log
+    from fleetcal.workflows.simulator.camera import SimCamera, pinhole_camera, render
+    from fleetcal.workflows.simulator.lidar import LidarModel, simulate_scan
+    from fleetcal.workflows.simulator.motion import LoopMotion
+    from fleetcal.workflows.simulator.raycast import build_grid, default_threads
+    from fleetcal.workflows.simulator.scene import build_scene
+    from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log
 
     import_s = time.perf_counter() - started
     threads = args.threads or default_threads()

@@ -33,11 +33,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench_gom import CASES  # the GOM table's cases, beside this script
 
-from pipeline.config import Config
-from stages.calibration import CalibrationConfig, calibrate
+from fleetcal.pipeline.config import Config
+from fleetcal.stages.calibration import CalibrationConfig, calibrate
+from fleetcal.workflows.calibrate import solver_config
 from tests.test_calibration_real import LOGS, errors, load_real_frames
 from tests.test_calibration_synthetic import perturb
-from workflows.calibrate import solver_config
 
 REAL = {name: CASES[name] for name in ("kitti", "pjlab", "pjlab-rig2", "nuscenes")}  # the GOM table's logs
 SIM = {"sim-street": "street", "sim-open": "open"}

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.errors import DecodeError
+from fleetcal.pipeline.errors import DecodeError
 
 DISTORTION_MODELS = ("plumb_bob", "rational_polynomial", "equidistant", "cylindrical", "none")
 _DISTORTION_ALIASES = {"": "none", "pinhole": "none", "radtan": "plumb_bob", "fisheye": "equidistant",

@@ -27,10 +27,10 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.config import EngineConfig
-from pipeline.errors import ConfigError, DecodeError, FleetcalError, InputError, ProcessingError
-from pipeline.frames import CameraFrame, LidarFrame
-from pipeline.progress import Progress
+from fleetcal.pipeline.config import EngineConfig
+from fleetcal.pipeline.errors import ConfigError, DecodeError, FleetcalError, InputError, ProcessingError
+from fleetcal.pipeline.frames import CameraFrame, LidarFrame
+from fleetcal.pipeline.progress import Progress
 
 __all__ = [
     "CAMERA_TYPES",
@@ -188,7 +188,7 @@ def plan_batches(
     Raises:
         InputError: unknown topic, a type the engine cannot decode, ``batch_size < 1``; reader errors.
     """
-    from readers.open import open_log
+    from fleetcal.readers.open import open_log
 
     if batch_size < 1:
         raise InputError(f"batch_size must be >= 1, got {batch_size}")
@@ -284,9 +284,9 @@ def _iter_frames(batch: FrameBatch, skip: Callable[[str, str], None]) -> Iterato
     Camera frames get the latest CameraInfo of the topic (``readers.frames.CameraInfoTracker``:
     seeded with the log's first CameraInfo, updated by those inside the batch's range).
     """
-    from readers.decode import decode_pointcloud2
-    from readers.frames import CameraInfoTracker, decode_camera_image
-    from readers.open import open_log
+    from fleetcal.readers.decode import decode_pointcloud2
+    from fleetcal.readers.frames import CameraInfoTracker, decode_camera_image
+    from fleetcal.readers.open import open_log
 
     with open_log(list(batch.paths), allow_truncated=batch.allow_truncated) as reader:
         msgtype = _check_topic(reader.topics, batch.topic)
@@ -316,7 +316,7 @@ def _iter_frames(batch: FrameBatch, skip: Callable[[str, str], None]) -> Iterato
 
 def warm_up_kernels() -> None:
     """Compile (or load from numba's cache) the per-frame kernels in this process."""
-    from stages import image_kernels, lidar_feature_kernels
+    from fleetcal.stages import image_kernels, lidar_feature_kernels
 
     image_kernels.warm_up()
     lidar_feature_kernels.warm_up()

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.camera_model import CameraModel
+from fleetcal.pipeline.camera_model import CameraModel
 
 
 @dataclass

@@ -17,11 +17,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.errors import ConfigError, DecodeError
-from pipeline.frames import CameraFrame, LidarFrame
-from readers.base import LogReader, RawMessage
-from readers.decode import decode_pointcloud2, stamp_to_ns
-from readers.frames import (
+from fleetcal.pipeline.errors import ConfigError, DecodeError
+from fleetcal.pipeline.frames import CameraFrame, LidarFrame
+from fleetcal.readers.base import LogReader, RawMessage
+from fleetcal.readers.decode import decode_pointcloud2, stamp_to_ns
+from fleetcal.readers.frames import (
     IMAGE_TYPES,
     POINTCLOUD2,
     CameraInfoTracker,

@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation, Slerp
 
-from pipeline.errors import TransformError
+from fleetcal.pipeline.errors import TransformError
 
 Mat4 = NDArray[np.float64]
 

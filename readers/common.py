@@ -8,10 +8,12 @@ file that fill ``_types``, ``_start_ns`` and ``_end_ns``, the time span and ``de
 
 from __future__ import annotations
 
-from typing import Any, Self
+from typing import Any
 
-from readers.base import RawMessage, TopicInfo
-from readers.typesys import LogTypes
+from typing_extensions import Self
+
+from fleetcal.readers.base import RawMessage, TopicInfo
+from fleetcal.readers.typesys import LogTypes
 
 
 def rosbags_time_span(reader: Any) -> tuple[int, int]:

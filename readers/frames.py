@@ -7,12 +7,12 @@ import re
 from collections.abc import Collection, Iterable, Iterator, Mapping
 from typing import Any
 
-from pipeline.camera_model import CameraModel
-from pipeline.errors import DecodeError, InputError, TransformError
-from pipeline.frames import CameraFrame, LidarFrame
-from pipeline.transforms import TransformTree
-from readers.base import LogReader, RawMessage, TopicInfo
-from readers.decode import (
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.pipeline.errors import DecodeError, InputError, TransformError
+from fleetcal.pipeline.frames import CameraFrame, LidarFrame
+from fleetcal.pipeline.transforms import TransformTree
+from fleetcal.readers.base import LogReader, RawMessage, TopicInfo
+from fleetcal.readers.decode import (
     decode_camera_info,
     decode_compressed_image,
     decode_image,
@@ -20,7 +20,7 @@ from readers.decode import (
     rectification_rotation,
     stereo_baseline_m,
 )
-from readers.decode.tf import decode_transform
+from fleetcal.readers.decode.tf import decode_transform
 
 log = logging.getLogger(__name__)
 

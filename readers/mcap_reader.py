@@ -24,10 +24,10 @@ from mcap.reader import SeekingReader
 from mcap.records import Channel, Chunk, Footer, Message, Schema
 from mcap.stream_reader import MAGIC_SIZE, StreamReader, breakup_chunk
 
-from pipeline.errors import ReaderError, TruncatedLogError
-from readers.base import ChannelInfo, LogFormat, RawMessage, Serialization, TopicInfo
-from readers.common import ContainerReader
-from readers.typesys import DefinitionEncoding, LogTypes, TypeDefinition, build_log_types, normalize_msgtype
+from fleetcal.pipeline.errors import ReaderError, TruncatedLogError
+from fleetcal.readers.base import ChannelInfo, LogFormat, RawMessage, Serialization, TopicInfo
+from fleetcal.readers.common import ContainerReader
+from fleetcal.readers.typesys import DefinitionEncoding, LogTypes, TypeDefinition, build_log_types, normalize_msgtype
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _RECORD_PREFIX = 9

@@ -11,10 +11,10 @@ import heapq
 from collections.abc import Iterable, Iterator, Sequence
 from typing import Any
 
-from pipeline.errors import DecodeError, ReaderError
-from readers.base import LogFormat, LogReader, RawMessage, TopicInfo
-from readers.common import ReaderPlumbing
-from readers.mcap_reader import TruncationInfo
+from fleetcal.pipeline.errors import DecodeError, ReaderError
+from fleetcal.readers.base import LogFormat, LogReader, RawMessage, TopicInfo
+from fleetcal.readers.common import ReaderPlumbing
+from fleetcal.readers.mcap_reader import TruncationInfo
 
 
 class MergedLogReader(ReaderPlumbing):

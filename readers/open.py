@@ -12,12 +12,12 @@ import os
 from collections.abc import Sequence
 from pathlib import Path
 
-from pipeline.errors import InputError, ReaderError
-from readers.base import LogFormat, LogReader
-from readers.mcap_reader import MCAP_MAGIC, McapLogReader, TruncationInfo
-from readers.merged import MergedLogReader
-from readers.rosbag1_reader import ROSBAG1_MAGIC, Rosbag1LogReader
-from readers.rosbag2_reader import Rosbag2LogReader
+from fleetcal.pipeline.errors import InputError, ReaderError
+from fleetcal.readers.base import LogFormat, LogReader
+from fleetcal.readers.mcap_reader import MCAP_MAGIC, McapLogReader, TruncationInfo
+from fleetcal.readers.merged import MergedLogReader
+from fleetcal.readers.rosbag1_reader import ROSBAG1_MAGIC, Rosbag1LogReader
+from fleetcal.readers.rosbag2_reader import Rosbag2LogReader
 
 PathArg = str | os.PathLike[str]
 

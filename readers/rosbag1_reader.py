@@ -14,10 +14,10 @@ from pathlib import Path
 from rosbags.rosbag1 import Reader
 from rosbags.rosbag1 import ReaderError as Rosbag1Error
 
-from pipeline.errors import ReaderError
-from readers.base import LogFormat, RawMessage
-from readers.common import ContainerReader, rosbags_time_span
-from readers.typesys import channel_info_from_connection, normalize_msgtype, topics_from_connections
+from fleetcal.pipeline.errors import ReaderError
+from fleetcal.readers.base import LogFormat, RawMessage
+from fleetcal.readers.common import ContainerReader, rosbags_time_span
+from fleetcal.readers.typesys import channel_info_from_connection, normalize_msgtype, topics_from_connections
 
 ROSBAG1_MAGIC = b"#ROSBAG V2.0\n"
 

@@ -22,10 +22,10 @@ from rosbags.interfaces import ConnectionExtRosbag2
 from rosbags.rosbag2 import Reader
 from rosbags.rosbag2 import ReaderError as Rosbag2Error
 
-from pipeline.errors import ReaderError
-from readers.base import LogFormat, RawMessage, Serialization
-from readers.common import ContainerReader, rosbags_time_span
-from readers.typesys import channel_info_from_connection, normalize_msgtype, topics_from_connections
+from fleetcal.pipeline.errors import ReaderError
+from fleetcal.readers.base import LogFormat, RawMessage, Serialization
+from fleetcal.readers.common import ContainerReader, rosbags_time_span
+from fleetcal.readers.typesys import channel_info_from_connection, normalize_msgtype, topics_from_connections
 
 
 class Rosbag2LogReader(ContainerReader):

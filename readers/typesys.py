@@ -29,8 +29,8 @@ from rosbags.typesys import Stores, TypesysError, get_types_from_idl, get_types_
 from rosbags.typesys.msg import denormalize_msgtype
 from rosbags.typesys.store import Typestore
 
-from pipeline.errors import DecodeError
-from readers.base import ChannelInfo, RawMessage, Serialization, TopicInfo
+from fleetcal.pipeline.errors import DecodeError
+from fleetcal.readers.base import ChannelInfo, RawMessage, Serialization, TopicInfo
 
 DefinitionEncoding = Literal["ros2msg", "ros2idl", "ros1msg", ""]
 

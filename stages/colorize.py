@@ -25,10 +25,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import map_coordinates
 
-from pipeline.camera_model import CameraModel
-from pipeline.errors import InputError
-from pipeline.frames import LidarFrame
-from pipeline.transforms import apply, is_rigid
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.pipeline.errors import InputError
+from fleetcal.pipeline.frames import LidarFrame
+from fleetcal.pipeline.transforms import apply, is_rigid
 
 CameraView = tuple[NDArray[np.generic], CameraModel, NDArray[np.float64]]
 """(image (H, W, 3) RGB or (H, W) grey, camera model, T_camera_lidar (4, 4))."""

@@ -13,10 +13,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.camera_model import CameraModel
-from pipeline.errors import InputError
-from pipeline.frames import CameraFrame
-from stages import image_kernels
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.pipeline.errors import InputError
+from fleetcal.pipeline.frames import CameraFrame
+from fleetcal.stages import image_kernels
 
 __all__ = [
     "CameraGradientResult",

@@ -16,9 +16,9 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 from scipy.stats import rankdata
 
-from pipeline.errors import InputError
-from pipeline.frames import LidarFrame
-from stages import lidar_feature_kernels
+from fleetcal.pipeline.errors import InputError
+from fleetcal.pipeline.frames import LidarFrame
+from fleetcal.stages import lidar_feature_kernels
 
 __all__ = [
     "FEATURE_KINDS",

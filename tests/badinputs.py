@@ -22,10 +22,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from pipeline.camera_model import CameraModel
-from pipeline.transforms import apply, invert, make_T, to_rpy_deg
-from stages.sinks import ros_messages
-from stages.sinks.log_writer import LogWriter
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.pipeline.transforms import apply, invert, make_T, to_rpy_deg
+from fleetcal.stages.sinks import ros_messages
+from fleetcal.stages.sinks.log_writer import LogWriter
 
 LIDAR_TOPIC = "/lidar/points"
 CAMERA_TOPIC = "/camera/image_raw"

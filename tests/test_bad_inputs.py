@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 import pytest
 
+from fleetcal.workflows.cli import main
 from tests import badinputs as bi
-from workflows.cli import main
 
 REPO = Path(__file__).resolve().parents[1]
 CALIBRATE_FAST = ["--frames", "1", "--particles", "20", "--no-report", "-q"]
@@ -446,7 +446,7 @@ def test_locked_sqlite_is_read_without_hanging(tmp_path: Path) -> None:
 def run_subprocess(argv: list[str], timeout_s: float = 120) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     return subprocess.run(
-        [sys.executable, "-m", "workflows.cli", *argv],
+        [sys.executable, "-m", "fleetcal.workflows.cli", *argv],
         capture_output=True, text=True, timeout=timeout_s, cwd=REPO, env=env,
     )  # fmt: skip
 
@@ -465,8 +465,8 @@ def test_bad_input_in_a_real_process(name: str, tmp_path: Path) -> None:
 
 DECODE_PEAK_SCRIPT = """
 import re, sys
-from readers.open import open_log
-from readers.frames import iter_lidar_frames
+from fleetcal.readers.open import open_log
+from fleetcal.readers.frames import iter_lidar_frames
 with open_log(sys.argv[1]) as reader:
     for frame in iter_lidar_frames(reader, "/lidar/points"):
         print("POINTS", frame.n_points, "DROPPED", frame.dropped_points)
@@ -479,7 +479,7 @@ print("PEAK_RSS_KB", re.search(r"VmHWM:\\s+(\\d+)", status).group(1))
 
 MAP_PEAK_SCRIPT = """
 import json, re, sys, time
-from workflows.cli import main
+from fleetcal.workflows.cli import main
 start = time.perf_counter()
 rc = main(sys.argv[1:])
 print("RC", rc, "WALL_S", time.perf_counter() - start)
@@ -501,9 +501,9 @@ def test_ten_million_points_in_one_message_memory_bounded(tmp_path: Path) -> Non
     rng = np.random.default_rng(0)
     points = rng.uniform(-50, 50, (n, 3)).astype(np.float32)
     points[:1000] = np.nan
-    from stages.registration.pointset import MAX_PREPARED_POINTS
-    from stages.sinks import ros_messages
-    from stages.sinks.log_writer import LogWriter
+    from fleetcal.stages.registration.pointset import MAX_PREPARED_POINTS
+    from fleetcal.stages.sinks import ros_messages
+    from fleetcal.stages.sinks.log_writer import LogWriter
 
     cloud = ros_messages.pointcloud2(bi.START_NS, "lidar", points, {"intensity": points[:, 0].copy()})
     del points

@@ -21,11 +21,11 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from pipeline.config import Config, config_from_dict
-from pipeline.errors import InputError
-from pipeline.transforms import from_xyz_rpy, to_quat, to_rpy_deg
-from stages.sinks.tables import CALIBRATION_SCHEMA, write_rows
-from workflows.batch import (
+from fleetcal.pipeline.config import Config, config_from_dict
+from fleetcal.pipeline.errors import InputError
+from fleetcal.pipeline.transforms import from_xyz_rpy, to_quat, to_rpy_deg
+from fleetcal.stages.sinks.tables import CALIBRATION_SCHEMA, write_rows
+from fleetcal.workflows.batch import (
     FLEET_FILE,
     MANIFEST_FILE,
     ProcessSummary,
@@ -36,7 +36,7 @@ from workflows.batch import (
     resolve_inputs,
     run_batch,
 )
-from workflows.cli import main
+from fleetcal.workflows.cli import main
 
 REPO = Path(__file__).resolve().parents[1]
 START_NS = 1_700_000_000_000_000_000
@@ -185,13 +185,13 @@ def test_batch_records_every_log_and_flags_drift(fleet_logs: Path, tmp_path: Pat
     assert fleet[0]["tx_m"] == pytest.approx(0.10) and fleet[1]["verdict"] == "ok"
     assert [r["translation_held"] for r in fleet] == [False, False, True]
     assert [r["translation_weak_axes"] for r in fleet] == ["", "x,z", ""]
-    from workflows.batch import _weak_axes
+    from fleetcal.workflows.batch import _weak_axes
 
     rig = {"camera_frame": "cam_back_optical", "weak_translation_axes": ["x"], "translation_axes_frame": "cam_front"}
     assert _weak_axes(rig) == "x of cam_front"  # a joint rig's axes are its reference camera's
     assert _weak_axes(dict(rig, translation_axes_frame="cam_back_optical")) == "x"
     assert _weak_axes(dict(rig, weak_translation_axes=[])) == ""
-    from workflows.cmd_batch import fleet_table
+    from fleetcal.workflows.cmd_batch import fleet_table
 
     printed = fleet_table(fleet, 0.5, 0.05).splitlines()
     assert printed[-4].split()[1] == "c" and "0.000 held " in printed[-4]  # c's t xyz, marked
@@ -277,15 +277,15 @@ max_iterations = 10
 
 
 def _fleetcal(*args: str) -> list[str]:
-    return [sys.executable, "-m", "workflows.cli", *args]
+    return [sys.executable, "-m", "fleetcal.workflows.cli", *args]
 
 
 @pytest.fixture(scope="module")
 def real_logs(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """6 tiny simulated logs (different seeds), a corrupt file and a log without a camera."""
-    from stages.sinks import ros_messages as rm
-    from stages.sinks.log_writer import LogWriter
-    from workflows.simulator.write import SimulationOptions, simulate_log
+    from fleetcal.stages.sinks import ros_messages as rm
+    from fleetcal.stages.sinks.log_writer import LogWriter
+    from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log
 
     logs = tmp_path_factory.mktemp("fleet")
     for seed in range(6):

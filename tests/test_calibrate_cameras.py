@@ -11,12 +11,12 @@ import pyarrow.parquet as pq
 import pytest
 from numpy.typing import NDArray
 
-from pipeline.camera_model import CameraModel
-from stages.calibration.affine import affine_matrices
-from stages.sinks import ros_messages as rm
-from stages.sinks.log_writer import LogWriter
-from workflows.calibrate_cameras import CAMERA_CAMERA_SCHEMA, select_spread
-from workflows.cli import main
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.stages.calibration.affine import affine_matrices
+from fleetcal.stages.sinks import ros_messages as rm
+from fleetcal.stages.sinks.log_writer import LogWriter
+from fleetcal.workflows.calibrate_cameras import CAMERA_CAMERA_SCHEMA, select_spread
+from fleetcal.workflows.cli import main
 
 WIDTH, HEIGHT = 320, 240
 CENTRE = ((WIDTH - 1) / 2.0, (HEIGHT - 1) / 2.0)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.camera_model import CameraModel
-from stages.calibration.problem import visible_points
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.stages.calibration.problem import visible_points
 
 
 def _grid(x_half: float, y_half: float, z: float, step: float) -> np.ndarray:

@@ -14,18 +14,18 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from pipeline.config import Config
-from pipeline.errors import ProcessingError
-from pipeline.pairing import iter_pairs
-from pipeline.transforms import invert, rotation_error_deg, translation_error_m
-from readers.frames import load_tf_tree
-from readers.open import open_log
-from stages.calibration import CalibrationConfig, CalibrationFrame, calibrate
-from stages.calibration.calibrator import resolve_auto_rules
-from stages.calibration.frame import build_frame
+from fleetcal.pipeline.config import Config
+from fleetcal.pipeline.errors import ProcessingError
+from fleetcal.pipeline.pairing import iter_pairs
+from fleetcal.pipeline.transforms import invert, rotation_error_deg, translation_error_m
+from fleetcal.readers.frames import load_tf_tree
+from fleetcal.readers.open import open_log
+from fleetcal.stages.calibration import CalibrationConfig, CalibrationFrame, calibrate
+from fleetcal.stages.calibration.calibrator import resolve_auto_rules
+from fleetcal.stages.calibration.frame import build_frame
+from fleetcal.workflows.calibrate import solver_config
 from tests.conftest import SHARED_DATA
 from tests.test_calibration_synthetic import perturb
-from workflows.calibrate import solver_config
 
 LOGS = SHARED_DATA / "logs"
 

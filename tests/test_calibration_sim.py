@@ -24,15 +24,15 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from pipeline.config import Config
-from pipeline.transforms import rotation_error_deg, translation_error_m
-from readers.frames import load_tf_tree
-from readers.open import open_log
-from stages.calibration import CalibrationConfig, CalibrationFrame, calibrate
+from fleetcal.pipeline.config import Config
+from fleetcal.pipeline.transforms import rotation_error_deg, translation_error_m
+from fleetcal.readers.frames import load_tf_tree
+from fleetcal.readers.open import open_log
+from fleetcal.stages.calibration import CalibrationConfig, CalibrationFrame, calibrate
+from fleetcal.workflows.calibrate import collect_frames, initial_guess
+from fleetcal.workflows.simulator.truth import load_truth, truth_path_for
+from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log
 from tests.test_calibration_synthetic import perturb
-from workflows.calibrate import collect_frames, initial_guess
-from workflows.simulator.truth import load_truth, truth_path_for
-from workflows.simulator.write import SimulationOptions, simulate_log
 
 SIM = {"beams": 64, "columns": 512, "width": 640, "height": 360, "perturb_deg": 5.0, "perturb_m": 0.5,
        "seed": 1}

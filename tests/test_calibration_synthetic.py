@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from pipeline.camera_model import CameraModel
-from pipeline.errors import ConfigError, ProcessingError
-from pipeline.frames import CameraFrame, LidarFrame
-from pipeline.transforms import (
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.pipeline.errors import ConfigError, ProcessingError
+from fleetcal.pipeline.frames import CameraFrame, LidarFrame
+from fleetcal.pipeline.transforms import (
     apply,
     from_xyz_rpy,
     invert,
@@ -27,13 +27,13 @@ from pipeline.transforms import (
     rotation_error_deg,
     translation_error_m,
 )
-from stages.calibration import CalibrationConfig, CalibrationFrame, calibrate, compensate_ego_motion
-from stages.calibration.calibrator import agreeing_repeats, box_edge, resolve_auto_rules
-from stages.calibration.frame import build_frame, default_blur_sigma_px
-from stages.calibration.metrics import GomScorer, camera_params
-from stages.calibration.problem import CalibrationProblem
-from stages.image_gradients import ImageGradients, compute_image_gradients
-from stages.lidar_features import compute_lidar_feature
+from fleetcal.stages.calibration import CalibrationConfig, CalibrationFrame, calibrate, compensate_ego_motion
+from fleetcal.stages.calibration.calibrator import agreeing_repeats, box_edge, resolve_auto_rules
+from fleetcal.stages.calibration.frame import build_frame, default_blur_sigma_px
+from fleetcal.stages.calibration.metrics import GomScorer, camera_params
+from fleetcal.stages.calibration.problem import CalibrationProblem
+from fleetcal.stages.image_gradients import ImageGradients, compute_image_gradients
+from fleetcal.stages.lidar_features import compute_lidar_feature
 
 # lidar (x fwd, y left, z up) -> camera optical (x right, y down, z fwd), camera 0.3 m above, 0.1 m left
 R_OPTICAL_LIDAR = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
@@ -438,7 +438,7 @@ def test_no_frames_is_a_clear_error() -> None:
 
 def test_several_feature_channels_score_the_mean_of_their_channels(frame: CalibrationFrame) -> None:
     """An (N, 2) feature scores the mean of the two single-feature scores at every pose."""
-    from stages.calibration.problem import CalibrationProblem
+    from fleetcal.stages.calibration.problem import CalibrationProblem
 
     replace = dataclasses.replace
     rng_feature = compute_lidar_feature(np.asarray(frame.points_xyz), "range")
@@ -457,8 +457,8 @@ def test_ring_smoothing_adds_a_term_smoothed_across_the_rings(frame: Calibration
     """``ring_smoothing="on"`` scores each frame as the mean of GOM on its sharp image gradients and on
     them smoothed across the rings by a third of the ring spacing (0.35 deg x 500 px / 3 ~ 1 px here);
     ``auto`` leaves a scan whose rings are finer than the image blur alone."""
-    from stages.calibration.metrics import GomScorer
-    from stages.calibration.problem import CalibrationProblem
+    from fleetcal.stages.calibration.metrics import GomScorer
+    from fleetcal.stages.calibration.problem import CalibrationProblem
 
     T_init = perturb(true_T_camera_lidar(), 2.0, 0.2, seed=4)
     x = np.random.default_rng(1).uniform(-2, 2, (16, 6)) * [1, 1, 1, 0.1, 0.1, 0.1]
@@ -529,8 +529,8 @@ def test_sparse_rings_slanted_across_the_image_are_suspect(frame: CalibrationFra
 
 
 def test_unknown_feature_in_a_combination_is_a_config_error() -> None:
-    from pipeline.config import CalibrationConfig as WorkflowCalibration
-    from pipeline.config import feature_names
+    from fleetcal.pipeline.config import CalibrationConfig as WorkflowCalibration
+    from fleetcal.pipeline.config import feature_names
 
     assert feature_names("range+normals") == ["range", "normals"]
     with pytest.raises(ConfigError, match="lidar feature"):

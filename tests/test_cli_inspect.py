@@ -10,7 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from readers.open import open_log
+from fleetcal.readers.open import open_log
+from fleetcal.workflows.cli import main
+from fleetcal.workflows.inspect_log import inspect_log
 from tests.test_readers import (
     FORMATS,
     MS,
@@ -21,8 +23,6 @@ from tests.test_readers import (
     write_log,
     write_mcap,
 )
-from workflows.cli import main
-from workflows.inspect_log import inspect_log
 
 Capsys = pytest.CaptureFixture[str]
 JSON_KEYS = {"paths", "format", "start_ns", "end_ns", "topics", "lidar_topics", "camera_topics", "tf",
@@ -199,7 +199,7 @@ def test_console_script_subprocess(tmp_path: Path) -> None:
 def test_lidar_point_times_are_described(deskewed: bool, tmp_path: Path, capsys: Capsys) -> None:
     """A simulated lidar that does not de-skew carries a sweep of firing times (0..0.1 s); one that does
     carries zeros; both are named, in the JSON and in the text."""
-    from workflows.simulator.write import SimulationOptions, simulate_log
+    from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log
 
     log = tmp_path / "sim.mcap"
     simulate_log(log, SimulationOptions(frames=2, beams=16, columns=256, width=64, height=48, deskew=deskewed))

@@ -11,14 +11,14 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from pipeline.camera_model import CameraModel
-from pipeline.transforms import apply, from_xyz_rpy, invert
-from readers.frames import iter_camera_frames, iter_lidar_frames, load_tf_tree
-from readers.open import open_log
-from workflows.cli import main
-from workflows.inspect_log import inspect_log
-from workflows.simulator.truth import load_truth, truth_path_for
-from workflows.simulator.write import SimulationOptions, simulate_log
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.pipeline.transforms import apply, from_xyz_rpy, invert
+from fleetcal.readers.frames import iter_camera_frames, iter_lidar_frames, load_tf_tree
+from fleetcal.readers.open import open_log
+from fleetcal.workflows.cli import main
+from fleetcal.workflows.inspect_log import inspect_log
+from fleetcal.workflows.simulator.truth import load_truth, truth_path_for
+from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log
 
 TINY = {"frames": 2, "beams": 16, "columns": 256, "width": 96, "height": 64}
 

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from pipeline.camera_model import CameraModel
-from pipeline.errors import InputError
-from pipeline.frames import LidarFrame
-from pipeline.transforms import apply, from_xyz_rpy, invert
-from stages.colorize import colorize, colorize_frame, fill_unseen
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.pipeline.errors import InputError
+from fleetcal.pipeline.frames import LidarFrame
+from fleetcal.pipeline.transforms import apply, from_xyz_rpy, invert
+from fleetcal.stages.colorize import colorize, colorize_frame, fill_unseen
 
 W, H = 160, 120
 K = np.array([[100.0, 0.0, 79.5], [0.0, 100.0, 59.5], [0.0, 0.0, 1.0]])
@@ -149,8 +149,8 @@ def test_moving_rig_colours_points_at_the_image_stamp(sweep: bool) -> None:
     moved to the image's stamp by the /tf odometry (``ego_motion.points_at``), they take their own stripe's
     colour; left at the scan stamp, most (whole scan) or half (firing times over the sweep) take the
     neighbour's."""
-    from pipeline.transforms import TransformTree
-    from workflows.ego_motion import points_at
+    from fleetcal.pipeline.transforms import TransformTree
+    from fleetcal.workflows.ego_motion import points_at
 
     speed, stamp_ns, camera_ns = 10.0, 1_700_000_000_000_000_000, 1_700_000_000_040_000_000
     tree = TransformTree()

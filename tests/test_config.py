@@ -2,14 +2,19 @@
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import pytest
-import tomllib
 
-from pipeline import config as config_module
-from pipeline.config import (
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # Python 3.10
+    import tomli as tomllib
+
+from fleetcal.pipeline import config as config_module
+from fleetcal.pipeline.config import (
     Config,
     config_from_dict,
     config_to_dict,
@@ -17,7 +22,7 @@ from pipeline.config import (
     to_toml,
     write_toml,
 )
-from pipeline.errors import ConfigError
+from fleetcal.pipeline.errors import ConfigError
 
 
 def test_defaults() -> None:
@@ -162,7 +167,7 @@ def test_gradient_settings_follow_the_viewpoint() -> None:
     """``auto``: the lidar's own sphere (least squares, neighbours across rings) in every box, exploring
     only in wide ones; the paper's camera sphere (Algorithm 1, nearest-by-angle neighbours) on request;
     explicit choices win."""
-    from workflows.calibrate import solver_config
+    from fleetcal.workflows.calibrate import solver_config
 
     config = Config()
     assert config.calibration.gradient_viewpoint == "auto"
@@ -187,7 +192,7 @@ def test_gradient_settings_follow_the_viewpoint() -> None:
 
 
 def test_confirm_repeats_reaches_the_solver() -> None:
-    from workflows.calibrate import solver_config
+    from fleetcal.workflows.calibrate import solver_config
 
     assert solver_config(Config()).confirm_repeats == 3
     config = load_config(env={"FLEETCAL_CALIBRATION__CONFIRM_REPEATS": "0"})
@@ -195,7 +200,7 @@ def test_confirm_repeats_reaches_the_solver() -> None:
 
 
 def test_ring_smoothing_reaches_the_solver_and_rejects_other_values() -> None:
-    from workflows.calibrate import solver_config
+    from fleetcal.workflows.calibrate import solver_config
 
     assert solver_config(Config()).ring_smoothing == "auto"
     config = load_config(env={"FLEETCAL_CALIBRATION__RING_SMOOTHING": "off"})
@@ -207,9 +212,9 @@ def test_ring_smoothing_reaches_the_solver_and_rejects_other_values() -> None:
 
 
 def test_translation_flag_reaches_the_solver_and_a_zero_box_holds_it() -> None:
-    from workflows.calibrate import solver_config
-    from workflows.cli import build_parser
-    from workflows.cmd_calibrate import overrides
+    from fleetcal.workflows.calibrate import solver_config
+    from fleetcal.workflows.cli import build_parser
+    from fleetcal.workflows.cmd_calibrate import overrides
 
     parser = build_parser()
     assert solver_config(Config()).translation == "auto"
@@ -228,8 +233,8 @@ def test_translation_flag_reaches_the_solver_and_a_zero_box_holds_it() -> None:
 
 
 def test_no_point_times_flag_reaches_the_config() -> None:
-    from workflows.cli import build_parser
-    from workflows.cmd_calibrate import overrides
+    from fleetcal.workflows.cli import build_parser
+    from fleetcal.workflows.cmd_calibrate import overrides
 
     parser = build_parser()
     on = overrides(parser.parse_args(["calibrate", "x.mcap", "--out", "o"]))
@@ -240,8 +245,8 @@ def test_no_point_times_flag_reaches_the_config() -> None:
 
 
 def test_rectified_topic_flags_and_environment_reach_the_config() -> None:
-    from workflows.cli import build_parser
-    from workflows.cmd_calibrate import overrides
+    from fleetcal.workflows.cli import build_parser
+    from fleetcal.workflows.cmd_calibrate import overrides
 
     parser = build_parser()
     args = parser.parse_args(["calibrate", "x.mcap", "--out", "o", "--rectified-topic", "/a/image",

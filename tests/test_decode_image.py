@@ -9,10 +9,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from pipeline.errors import DecodeError, UnsupportedEncodingError
-from readers.decode import SUPPORTED_ENCODINGS, decode_compressed_image, decode_image
-from stages.sinks import ros_messages as rm
-from stages.sinks.ros_messages import Profile
+from fleetcal.pipeline.errors import DecodeError, UnsupportedEncodingError
+from fleetcal.readers.decode import SUPPORTED_ENCODINGS, decode_compressed_image, decode_image
+from fleetcal.stages.sinks import ros_messages as rm
+from fleetcal.stages.sinks.ros_messages import Profile
 
 STAMP = 1_600_000_000_000_000_001
 H, W = 24, 32
@@ -160,8 +160,7 @@ def test_bad_compressed_images_raise() -> None:
 def test_real_log_images(
     shared_data: Path, log: str, msgtype: str, size: tuple[int, int], count: int
 ) -> None:
-    pytest.importorskip("readers.open", reason="readers.open (engineer A) not built yet")
-    from readers.open import open_log
+    from fleetcal.readers.open import open_log
 
     decode = decode_image if msgtype.endswith("/Image") else decode_compressed_image
     with open_log(shared_data / "logs" / log) as reader:

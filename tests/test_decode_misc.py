@@ -14,16 +14,16 @@ import pytest
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from pipeline.camera_model import CameraModel
-from pipeline.errors import DecodeError, TransformError
-from pipeline.pairing import iter_pairs
-from pipeline.transforms import from_xyz_rpy, rotation_error_deg, translation_error_m
-from readers.decode import decode_camera_info, decode_tf, rectification_rotation, stereo_baseline_m
-from readers.frames import CameraInfoTracker, is_rectified_topic, iter_camera_frames
-from readers.open import open_log
-from stages.sinks import ros_messages as rm
-from stages.sinks.log_writer import LogWriter
-from stages.sinks.ros_messages import Profile
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.pipeline.errors import DecodeError, TransformError
+from fleetcal.pipeline.pairing import iter_pairs
+from fleetcal.pipeline.transforms import from_xyz_rpy, rotation_error_deg, translation_error_m
+from fleetcal.readers.decode import decode_camera_info, decode_tf, rectification_rotation, stereo_baseline_m
+from fleetcal.readers.frames import CameraInfoTracker, is_rectified_topic, iter_camera_frames
+from fleetcal.readers.open import open_log
+from fleetcal.stages.sinks import ros_messages as rm
+from fleetcal.stages.sinks.log_writer import LogWriter
+from fleetcal.stages.sinks.ros_messages import Profile
 
 K = np.array([[600.0, 0.0, 320.5], [0.0, 580.0, 240.25], [0.0, 0.0, 1.0]])
 MODELS = {
@@ -108,9 +108,8 @@ def test_tf_quaternion_checks() -> None:
 
 
 def test_load_tf_tree_skips_bad_entries(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    from readers.frames import load_tf_tree
-
-    open_log = pytest.importorskip("readers.open", reason="readers.open (engineer A) not built yet").open_log
+    from fleetcal.readers.frames import load_tf_tree
+    from fleetcal.readers.open import open_log
     T_base_lidar = from_xyz_rpy(0.5, 0.0, 1.8, 0.0, 0.0, 3.0)
     T_base_cam = from_xyz_rpy(1.0, 0.2, 1.5, -90.0, 0.0, -90.0)
     bad = rm.tf_message([(0, "base", "broken", np.eye(4))])
@@ -190,8 +189,8 @@ def test_project_unproject_roundtrip(model: str) -> None:
     "log", ["kitti_2011_09_26.mcap", "nuscenes_n015.bag", "pjlab_road_rig1", "pjlab_road_rig2"]
 )
 def test_real_logs_camera_info_and_tf(shared_data: Path, log: str) -> None:
-    open_log = pytest.importorskip("readers.open", reason="readers.open (engineer A) not built yet").open_log
-    from readers.frames import camera_info_topic_for, load_tf_tree
+    from fleetcal.readers.frames import camera_info_topic_for, load_tf_tree
+    from fleetcal.readers.open import open_log
 
     truth = json.loads((shared_data / "logs" / (log.split(".")[0] + ".truth.json")).read_text())
     with open_log(shared_data / "logs" / log) as reader:

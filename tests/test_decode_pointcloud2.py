@@ -9,10 +9,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from pipeline.errors import DecodeError
-from readers.decode import decode_pointcloud2
-from stages.sinks import ros_messages as rm
-from stages.sinks.ros_messages import Profile
+from fleetcal.pipeline.errors import DecodeError
+from fleetcal.readers.decode import decode_pointcloud2
+from fleetcal.stages.sinks import ros_messages as rm
+from fleetcal.stages.sinks.ros_messages import Profile
 
 TYPE = "sensor_msgs/msg/PointCloud2"
 STAMP = 1_700_000_000_123_456_789
@@ -261,8 +261,8 @@ def test_relative_time_from_another_field_is_its_own_array() -> None:
 @pytest.mark.parametrize(("fmt", "filename"), [("mcap", "log.mcap"), ("ros1", "log.bag")])
 def test_reader_deserialize_keeps_pointcloud_payload_zero_copy(tmp_path: Path, fmt: str, filename: str) -> None:
     """``deserialize`` hands PointCloud2 ``data`` over as a view of the raw message bytes (cdr and ros1)."""
-    from readers.open import open_log
-    from stages.sinks.log_writer import LogWriter
+    from fleetcal.readers.open import open_log
+    from fleetcal.stages.sinks.log_writer import LogWriter
 
     intensity = np.arange(1000, dtype=np.float32)
     profile: Profile = "ros1" if fmt == "ros1" else "ros2"
@@ -278,7 +278,7 @@ def test_reader_deserialize_keeps_pointcloud_payload_zero_copy(tmp_path: Path, f
     np.testing.assert_array_equal(frame.channels["intensity"], intensity)
 
 def _first_cloud(path: Path, topic: str | None = None) -> tuple[Any, str]:
-    from readers.open import open_log
+    from fleetcal.readers.open import open_log
 
     with open_log(path) as reader:
         topic = topic or next(t for t, info in reader.topics.items() if info.msgtype.endswith("PointCloud2"))
@@ -297,7 +297,6 @@ def _first_cloud(path: Path, topic: str | None = None) -> tuple[Any, str]:
     ],
 )
 def test_real_logs_decode(shared_data: Path, log: str, min_points: int, channels: set[str]) -> None:
-    pytest.importorskip("readers.open", reason="readers.open (engineer A) not built yet")
     msg, topic = _first_cloud(shared_data / "logs" / log)
     frame = decode_pointcloud2(msg, topic)
     assert frame.n_points + frame.dropped_points == msg.width * msg.height
@@ -319,7 +318,7 @@ def test_real_logs_decode(shared_data: Path, log: str, min_points: int, channels
 @pytest.mark.parametrize("organized", [False, True])
 def test_numba_kernel_matches_numpy_reference(organized: bool) -> None:
     """The numba x, y, z gather agrees with ``xyz_numpy`` on random, NaN, zero, inf and row-padded input."""
-    from readers.decode.pointcloud2 import _xyz_kernel, xyz_numpy
+    from fleetcal.readers.decode.pointcloud2 import _xyz_kernel, xyz_numpy
 
     rng = np.random.default_rng(7)
     h, w = (8, 50) if organized else (1, 400)

@@ -12,16 +12,16 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from pipeline.frames import LidarFrame
-from pipeline.transforms import apply, invert, screw_apply, twist_of
-from readers.decode.pointcloud2 import decode_pointcloud2
-from readers.open import open_log
-from stages.registration import RegistrationConfig
-from stages.registration.deskew import deskew_points, deskew_pointset, sweep_twist, usable_times
-from stages.registration.odometry import VoxelMap, relative_translation_drift, run_odometry
-from stages.registration.pointset import prepare_pointset
-from workflows.simulator.truth import load_truth, truth_path_for
-from workflows.simulator.write import SimulationOptions, simulate_log
+from fleetcal.pipeline.frames import LidarFrame
+from fleetcal.pipeline.transforms import apply, invert, screw_apply, twist_of
+from fleetcal.readers.decode.pointcloud2 import decode_pointcloud2
+from fleetcal.readers.open import open_log
+from fleetcal.stages.registration import RegistrationConfig
+from fleetcal.stages.registration.deskew import deskew_points, deskew_pointset, sweep_twist, usable_times
+from fleetcal.stages.registration.odometry import VoxelMap, relative_translation_drift, run_odometry
+from fleetcal.stages.registration.pointset import prepare_pointset
+from fleetcal.workflows.simulator.truth import load_truth, truth_path_for
+from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log
 
 Sequences = dict[str, tuple[list[LidarFrame], list[NDArray[np.float64]]]]
 TWIST = np.array([12.0, 0.5, 0.0, 0.02, -0.01, 0.35])  # m/s and rad/s, lidar frame

@@ -18,18 +18,18 @@ import cloudpickle
 import numpy as np
 import pytest
 
-from pipeline.camera_model import CameraModel
-from pipeline.config import load_config
-from pipeline.engine import Engine, plan_batches, run_batch
-from pipeline.errors import InputError, ProcessingError
-from pipeline.frames import CameraFrame, LidarFrame
-from pipeline.progress import Progress
-from readers.frames import iter_lidar_frames
-from readers.open import open_log
-from stages.image_gradients import camera_frame_gradients
-from stages.lidar_features import lidar_frame_feature
-from stages.sinks import ros_messages as rm
-from stages.sinks.log_writer import LogWriter
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.pipeline.config import load_config
+from fleetcal.pipeline.engine import Engine, plan_batches, run_batch
+from fleetcal.pipeline.errors import InputError, ProcessingError
+from fleetcal.pipeline.frames import CameraFrame, LidarFrame
+from fleetcal.pipeline.progress import Progress
+from fleetcal.readers.frames import iter_lidar_frames
+from fleetcal.readers.open import open_log
+from fleetcal.stages.image_gradients import camera_frame_gradients
+from fleetcal.stages.lidar_features import lidar_frame_feature
+from fleetcal.stages.sinks import ros_messages as rm
+from fleetcal.stages.sinks.log_writer import LogWriter
 
 cloudpickle.register_pickle_by_value(sys.modules[__name__])
 

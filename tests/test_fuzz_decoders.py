@@ -23,19 +23,19 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipeline.camera_model import CameraModel
-from pipeline.errors import InputError
-from pipeline.frames import CameraFrame, LidarFrame
-from readers.decode import (
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.pipeline.errors import InputError
+from fleetcal.pipeline.frames import CameraFrame, LidarFrame
+from fleetcal.readers.decode import (
     decode_camera_info,
     decode_compressed_image,
     decode_image,
     decode_pointcloud2,
     decode_tf,
 )
-from readers.open import open_log
-from stages.sinks import ros_messages
-from stages.sinks.ros_messages import Profile
+from fleetcal.readers.open import open_log
+from fleetcal.stages.sinks import ros_messages
+from fleetcal.stages.sinks.ros_messages import Profile
 from tests import badinputs as bi
 from tests.conftest import SHARED_DATA
 

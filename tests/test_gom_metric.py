@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from pipeline.camera_model import CameraModel
-from pipeline.errors import ProcessingError
-from pipeline.transforms import apply, from_xyz_rpy
-from stages.calibration import (
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.pipeline.errors import ProcessingError
+from fleetcal.pipeline.transforms import apply, from_xyz_rpy
+from fleetcal.stages.calibration import (
     CalibrationConfig,
     CalibrationProblem,
     GomScorer,
@@ -21,10 +21,10 @@ from stages.calibration import (
     compute_sphere_gradients,
     score_landscape,
 )
-from stages.calibration.affine import affine_matrices
-from stages.calibration.metrics import gom_reference, project_points, sample_bicubic
-from stages.calibration.sphere_gradients import sphere_coordinates, sphere_neighbours
-from stages.image_gradients import compute_image_gradients
+from fleetcal.stages.calibration.affine import affine_matrices
+from fleetcal.stages.calibration.metrics import gom_reference, project_points, sample_bicubic
+from fleetcal.stages.calibration.sphere_gradients import sphere_coordinates, sphere_neighbours
+from fleetcal.stages.image_gradients import compute_image_gradients
 from tests.test_calibration_synthetic import (
     make_scene,
     render_image,

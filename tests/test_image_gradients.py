@@ -8,11 +8,11 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.camera_model import CameraModel
-from pipeline.errors import InputError
-from pipeline.frames import CameraFrame
-from stages import image_kernels
-from stages.image_gradients import (
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.pipeline.errors import InputError
+from fleetcal.pipeline.frames import CameraFrame
+from fleetcal.stages import image_kernels
+from fleetcal.stages.image_gradients import (
     ImageGradients,
     camera_frame_gradients,
     compute_image_gradients,
@@ -257,8 +257,8 @@ def test_camera_stage_skips_blank_and_returns_gradients() -> None:
 
 
 def test_kitti_image_gradients(shared_data: Path) -> None:
-    from readers.frames import iter_camera_frames
-    from readers.open import open_log
+    from fleetcal.readers.frames import iter_camera_frames
+    from fleetcal.readers.open import open_log
 
     with open_log(shared_data / "logs" / "kitti_2011_09_26.mcap") as reader:
         frame = next(iter_camera_frames(reader, "/kitti/camera_color_left/image_raw"))

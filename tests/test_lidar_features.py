@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.errors import InputError
-from pipeline.frames import LidarFrame
-from stages import lidar_feature_kernels
-from stages.lidar_features import (
+from fleetcal.pipeline.errors import InputError
+from fleetcal.pipeline.frames import LidarFrame
+from fleetcal.stages import lidar_feature_kernels
+from fleetcal.stages.lidar_features import (
     GridSearchParams,
     compute_lidar_feature,
     equalize_rank,
@@ -284,8 +284,8 @@ def test_frame_stage_result_and_empty_frame() -> None:
 
 
 def test_kitti_ground_normals_are_vertical(shared_data: Path) -> None:
-    from readers.frames import iter_lidar_frames
-    from readers.open import open_log
+    from fleetcal.readers.frames import iter_lidar_frames
+    from fleetcal.readers.open import open_log
 
     with open_log(shared_data / "logs" / "kitti_2011_09_26.mcap") as reader:
         scan = next(iter_lidar_frames(reader, "/kitti/velo/pointcloud"))
@@ -388,8 +388,8 @@ def test_grid_search_tiny_clouds(n: int) -> None:
 def test_kitti_grid_search_identical_to_kdtree(shared_data: Path) -> None:
     """Real HDL-64 scan (no ring channel: elevation bins): the grid path proves most points exact
     and the rest fall back to the kd-tree, so the angles are identical."""
-    from readers.frames import iter_lidar_frames
-    from readers.open import open_log
+    from fleetcal.readers.frames import iter_lidar_frames
+    from fleetcal.readers.open import open_log
 
     with open_log(shared_data / "logs" / "kitti_2011_09_26.mcap") as reader:
         scan = next(iter_lidar_frames(reader, "/kitti/velo/pointcloud"))

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from pipeline.camera_model import CameraModel
-from pipeline.errors import ProcessingError
-from pipeline.transforms import apply, from_xyz_rpy
-from stages.calibration.sphere_gradients import (
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.pipeline.errors import ProcessingError
+from fleetcal.pipeline.transforms import apply, from_xyz_rpy
+from fleetcal.stages.calibration.sphere_gradients import (
     LidarGradients,
     camera_sphere_neighbours,
     compute_sphere_gradients,

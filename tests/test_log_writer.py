@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 from typing import Any
 
@@ -11,13 +10,13 @@ import pytest
 from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
-from pipeline.camera_model import CameraModel
-from pipeline.errors import InputError
-from pipeline.transforms import from_xyz_rpy
-from stages.sinks import ros_messages as rm
-from stages.sinks.atomic import atomic_path
-from stages.sinks.log_writer import LogWriter
-from stages.sinks.ros_messages import Profile
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.pipeline.errors import InputError
+from fleetcal.pipeline.transforms import from_xyz_rpy
+from fleetcal.stages.sinks import ros_messages as rm
+from fleetcal.stages.sinks.atomic import atomic_path
+from fleetcal.stages.sinks.log_writer import LogWriter
+from fleetcal.stages.sinks.ros_messages import Profile
 
 FORMATS = [
     pytest.param("mcap", {}, "log.mcap", id="mcap-ros2"),
@@ -203,12 +202,9 @@ def test_atomic_path_renames_only_on_success(tmp_path: Path) -> None:
         pass
 
 
-@pytest.mark.skipif(
-    importlib.util.find_spec("readers.open") is None, reason="readers.open (engineer A) not built yet"
-)
 @pytest.mark.parametrize(("fmt", "kwargs", "name"), FORMATS)
 def test_written_log_opens_with_open_log(tmp_path: Path, fmt: str, kwargs: dict[str, Any], name: str) -> None:
-    from readers.open import open_log
+    from fleetcal.readers.open import open_log
 
     path = tmp_path / name
     expected = _write_sample(path, fmt, kwargs)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from stages.calibration.observability import profile_drop, translation_profile, weak_axes
+from fleetcal.stages.calibration.observability import profile_drop, translation_profile, weak_axes
 
 
 class QuadraticProblem:

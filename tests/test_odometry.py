@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from pipeline.errors import ConfigError, InputError
-from pipeline.frames import LidarFrame
-from pipeline.transforms import apply, from_xyz_rpy, invert, rotation_error_deg, translation_error_m
-from stages.registration import RegistrationConfig, VoxelMap, prepare_pointset, run_odometry
-from stages.registration.odometry import relative_translation_drift
+from fleetcal.pipeline.errors import ConfigError, InputError
+from fleetcal.pipeline.frames import LidarFrame
+from fleetcal.pipeline.transforms import apply, from_xyz_rpy, invert, rotation_error_deg, translation_error_m
+from fleetcal.stages.registration import RegistrationConfig, VoxelMap, prepare_pointset, run_odometry
+from fleetcal.stages.registration.odometry import relative_translation_drift
 from tests.test_registration import room_scene
 
 
@@ -171,12 +171,11 @@ def test_relative_translation_drift_matches_hand_computed_values() -> None:
 
 
 def corridor_frames(n: int, max_range_m: float) -> tuple[list[LidarFrame], list[NDArray[np.float64]]]:
-    """De-skewed 32-beam scans of engineer C's poster corridor, 1.5 m/s at 10 Hz."""
-    pytest.importorskip("workflows.simulator")
-    from workflows.simulator.lidar import LidarModel, simulate_scan
-    from workflows.simulator.motion import LoopMotion
-    from workflows.simulator.raycast import build_grid
-    from workflows.simulator.scene import build_scene
+    """De-skewed 32-beam scans of the simulator's poster corridor, 1.5 m/s at 10 Hz."""
+    from fleetcal.workflows.simulator.lidar import LidarModel, simulate_scan
+    from fleetcal.workflows.simulator.motion import LoopMotion
+    from fleetcal.workflows.simulator.raycast import build_grid
+    from fleetcal.workflows.simulator.scene import build_scene
 
     scene = build_scene("corridor", 0)
     grid = build_grid(scene.triangles)
@@ -216,7 +215,7 @@ def test_corridor_scan_to_map_removes_the_scan_to_scan_zero_motion_bias() -> Non
 
 @pytest.mark.slow
 def test_corridor_mcgicp_drifts_less_than_gicp() -> None:
-    """Paper Fig. 3 on engineer C's poster corridor: 50 scans (7.35 m) of a 64-beam lidar with a 5 m
+    """Paper Fig. 3 on the simulator's poster corridor: 50 scans (7.35 m) of a 64-beam lidar with a 5 m
     range (Kinect-like, as the paper's poster-wall sequence; the corridor's ends stay out of range) and
     5 cm voxels. Walls, floor and ceiling fix everything but the along-wall motion; only the posters'
     and tiles' intensity texture can. Measured (scene seed 0): GICP 99.7 % drift scan-to-scan and 100 %
@@ -224,11 +223,10 @@ def test_corridor_mcgicp_drifts_less_than_gicp() -> None:
     scan-to-map with a keyframe every 0.1 m (2.3-5.4 % over scene seeds 0-5). With the default 0.5 m
     keyframe spacing the lone first keyframe is matched from up to 0.5 m away, beyond the texture's
     basin, and MC-GICP falls back to the sensor-fixed ring pattern (zero motion) like GICP."""
-    pytest.importorskip("workflows.simulator")
-    from workflows.simulator.lidar import LidarModel, simulate_scan
-    from workflows.simulator.motion import LoopMotion
-    from workflows.simulator.raycast import build_grid
-    from workflows.simulator.scene import build_scene
+    from fleetcal.workflows.simulator.lidar import LidarModel, simulate_scan
+    from fleetcal.workflows.simulator.motion import LoopMotion
+    from fleetcal.workflows.simulator.raycast import build_grid
+    from fleetcal.workflows.simulator.scene import build_scene
 
     scene = build_scene("corridor", 0)
     grid = build_grid(scene.triangles)

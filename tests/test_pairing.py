@@ -7,15 +7,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.camera_model import CameraModel
-from pipeline.errors import ConfigError, InputError
-from pipeline.pairing import PairingStats, iter_pairs, pair_stamps, raw_header_stamp_ns
-from readers.frames import camera_info_topic_for, iter_camera_frames, iter_lidar_frames
-from stages.sinks import ros_messages as rm
-from stages.sinks.log_writer import LogWriter
-from stages.sinks.ros_messages import Profile
-
-open_log = pytest.importorskip("readers.open", reason="readers.open (engineer A) not built yet").open_log
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.pipeline.errors import ConfigError, InputError
+from fleetcal.pipeline.pairing import PairingStats, iter_pairs, pair_stamps, raw_header_stamp_ns
+from fleetcal.readers.frames import camera_info_topic_for, iter_camera_frames, iter_lidar_frames
+from fleetcal.readers.open import open_log
+from fleetcal.stages.sinks import ros_messages as rm
+from fleetcal.stages.sinks.log_writer import LogWriter
+from fleetcal.stages.sinks.ros_messages import Profile
 
 MS = 1_000_000
 K = np.array([[100.0, 0, 40], [0, 100.0, 30], [0, 0, 1]])
@@ -124,7 +123,7 @@ def test_iter_frames_and_errors(tmp_path: Path) -> None:
 
 
 def test_raw_header_stamp_ros1_and_big_endian_cdr() -> None:
-    from readers.base import RawMessage
+    from fleetcal.readers.base import RawMessage
 
     stamp = 1_700_000_123_987_654_321
     for profile, serialization in (("ros1", "ros1"), ("ros2", "cdr")):

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.point_times import MAX_SWEEP_S, classify_point_times, max_offset_s
+from fleetcal.pipeline.point_times import MAX_SWEEP_S, classify_point_times, max_offset_s
 
 SWEEP_S = np.linspace(0.0, 0.099, 1000)  # a 10 Hz sweep stamped at its start
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from pipeline.errors import ConfigError
-from stages.calibration import particle_swarm, pattern_search
+from fleetcal.pipeline.errors import ConfigError
+from fleetcal.stages.calibration import particle_swarm, pattern_search
 
 OPTIMUM = np.array([1.5, -2.0, 0.25, 3.0, -0.5, 0.0])
 

@@ -23,10 +23,10 @@ from rosbags.rosbag2 import Writer as Rosbag2Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
-from pipeline.errors import DecodeError, InputError, ReaderError, TruncatedLogError
-from readers.mcap_reader import McapLogReader
-from readers.merged import MergedLogReader
-from readers.open import detect_format, open_log, truncation_of
+from fleetcal.pipeline.errors import DecodeError, InputError, ReaderError, TruncatedLogError
+from fleetcal.readers.mcap_reader import McapLogReader
+from fleetcal.readers.merged import MergedLogReader
+from fleetcal.readers.open import detect_format, open_log, truncation_of
 
 T0_NS = 1_700_000_000_000_000_000
 MS = 1_000_000

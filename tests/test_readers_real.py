@@ -17,11 +17,11 @@ import pytest
 from mcap.reader import make_reader
 from rosbags.rosbag1 import Reader as Rosbag1Reader
 
-from pipeline.errors import DecodeError
-from pipeline.transforms import TransformTree, from_quat
-from readers.base import LogReader
-from readers.open import open_log
-from workflows.inspect_log import inspect_log
+from fleetcal.pipeline.errors import DecodeError
+from fleetcal.pipeline.transforms import TransformTree, from_quat
+from fleetcal.readers.base import LogReader
+from fleetcal.readers.open import open_log
+from fleetcal.workflows.inspect_log import inspect_log
 
 LOGS = ["kitti_2011_09_26.mcap", "nuscenes_n015.bag", "pjlab_road_rig1", "pjlab_road_rig2",
         "outdoor_scan_pair.mcap", "rgbd_fragment.mcap"]

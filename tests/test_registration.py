@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from pipeline.errors import ConfigError, InputError, TransformError
-from pipeline.transforms import exp_se3, from_xyz_rpy, invert, make_T, rotation_error_deg, translation_error_m
-from stages.registration import (
+from fleetcal.pipeline.errors import ConfigError, InputError, TransformError
+from fleetcal.pipeline.transforms import exp_se3, from_xyz_rpy, invert, make_T, rotation_error_deg, translation_error_m
+from fleetcal.stages.registration import (
     PointSet,
     RegistrationConfig,
     estimate_covariances,
@@ -19,12 +19,12 @@ from stages.registration import (
     register,
     voxel_downsample,
 )
-from stages.registration.covariance_kernels import (
+from fleetcal.stages.registration.covariance_kernels import (
     gicp_covariances_kernel,
     mcgicp_covariances_kernel,
     sym3_eigh,
 )
-from stages.registration.gicp_kernels import (
+from fleetcal.stages.registration.gicp_kernels import (
     ROBUST_CAUCHY,
     ROBUST_HUBER,
     ROBUST_NONE,

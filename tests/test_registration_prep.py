@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from pipeline.errors import ConfigError
-from stages.registration import RegistrationConfig, prepare_pointset, voxel_downsample
-from stages.registration.voxel import coarsen_keys, voxel_downsample_capped, voxel_keys
+from fleetcal.pipeline.errors import ConfigError
+from fleetcal.stages.registration import RegistrationConfig, prepare_pointset, voxel_downsample
+from fleetcal.stages.registration.voxel import coarsen_keys, voxel_downsample_capped, voxel_keys
 
 
 def unique_reference(
@@ -112,7 +112,7 @@ def test_prepare_pointset_caps_points_and_counts_drops(caplog: pytest.LogCapture
     pts[:100] = np.nan
     intensity = rng.random(60_000).astype(np.float32)
     config = RegistrationConfig(method="mcgicp", channels="intensity", voxel_size_m=0.1, k_neighbors=10)
-    with caplog.at_level(logging.WARNING, logger="stages.registration.pointset"):
+    with caplog.at_level(logging.WARNING, logger="fleetcal.stages.registration.pointset"):
         capped = prepare_pointset(pts, {"intensity": intensity}, config, max_points=2_000)
     assert capped.n_points <= 2_000 and capped.dropped_points == 100
     assert "max_points=2000" in caplog.text

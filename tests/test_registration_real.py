@@ -16,21 +16,21 @@ import pytest
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from pipeline.frames import LidarFrame
-from pipeline.transforms import apply, from_xyz_rpy, invert, make_T, rotation_error_deg, translation_error_m
-from stages.registration import RegistrationConfig, pointset_from_frame, prepare_pointset, register
+from fleetcal.pipeline.frames import LidarFrame
+from fleetcal.pipeline.transforms import apply, from_xyz_rpy, invert, make_T, rotation_error_deg, translation_error_m
+from fleetcal.stages.registration import RegistrationConfig, pointset_from_frame, prepare_pointset, register
 
 
 def load_lidar_frames(path: Path, topic: str) -> list[LidarFrame]:
     """All LidarFrames of ``topic`` (engineer A/B readers; frames.iter_lidar_frames when present)."""
-    from readers.open import open_log
+    from fleetcal.readers.open import open_log
 
     reader = open_log(path)
     try:
         try:
-            from readers.frames import iter_lidar_frames
+            from fleetcal.readers.frames import iter_lidar_frames
         except ImportError:
-            from readers.decode import decode_pointcloud2
+            from fleetcal.readers.decode import decode_pointcloud2
 
             return [
                 decode_pointcloud2(reader.deserialize(raw), raw.topic, raw.log_time_ns)

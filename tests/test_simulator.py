@@ -7,8 +7,8 @@ import pytest
 from scipy.ndimage import map_coordinates
 from scipy.spatial.transform import Rotation
 
-from pipeline.errors import ConfigError, ProcessingError
-from pipeline.transforms import (
+from fleetcal.pipeline.errors import ConfigError, ProcessingError
+from fleetcal.pipeline.transforms import (
     apply,
     from_xyz_rpy,
     invert,
@@ -16,7 +16,7 @@ from pipeline.transforms import (
     rotation_error_deg,
     translation_error_m,
 )
-from workflows.simulator.camera import (
+from fleetcal.workflows.simulator.camera import (
     SKY_RGB,
     SUN_DIR_WORLD,
     SimCamera,
@@ -25,11 +25,11 @@ from workflows.simulator.camera import (
     render,
     render_depth,
 )
-from workflows.simulator.lidar import ROSETTE_HALF_ANGLE_DEG, LidarModel, beam_elevations_deg, simulate_scan
-from workflows.simulator.motion import LoopMotion
-from workflows.simulator.raycast import build_grid, cast_rays
-from workflows.simulator.raycast_kernels import shade_kernel
-from workflows.simulator.scene import (
+from fleetcal.workflows.simulator.lidar import ROSETTE_HALF_ANGLE_DEG, LidarModel, beam_elevations_deg, simulate_scan
+from fleetcal.workflows.simulator.motion import LoopMotion
+from fleetcal.workflows.simulator.raycast import build_grid, cast_rays
+from fleetcal.workflows.simulator.raycast_kernels import shade_kernel
+from fleetcal.workflows.simulator.scene import (
     BRICKS,
     CHECKER,
     MATERIAL_ALBEDO,
@@ -45,8 +45,8 @@ from workflows.simulator.scene import (
     build_scene,
     surface_properties,
 )
-from workflows.simulator.truth import build_rig, perturb
-from workflows.simulator.write import SimulationOptions
+from fleetcal.workflows.simulator.truth import build_rig, perturb
+from fleetcal.workflows.simulator.write import SimulationOptions
 
 
 # ---------------------------------------------------------------- slow NumPy references

@@ -16,17 +16,17 @@ from scipy.ndimage import map_coordinates
 from scipy.optimize import curve_fit
 from scipy.special import erfc
 
-from pipeline.camera_model import CameraModel
-from pipeline.transforms import apply, invert, rotation_error_deg, translation_error_m
-from readers.frames import iter_camera_frames, load_tf_tree
-from readers.open import open_log
-from workflows.simulator.camera import SimCamera, pinhole_camera, render, render_depth
-from workflows.simulator.lidar import LidarModel, simulate_scan
-from workflows.simulator.motion import LoopMotion
-from workflows.simulator.raycast import TriangleGrid, build_grid
-from workflows.simulator.scene import RouteSpec, Scene, SceneBuilder, build_scene
-from workflows.simulator.truth import ODOM_FRAME, build_rig, load_truth
-from workflows.simulator.write import START_NS, SimulationOptions, _event_times, simulate_log
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.pipeline.transforms import apply, invert, rotation_error_deg, translation_error_m
+from fleetcal.readers.frames import iter_camera_frames, load_tf_tree
+from fleetcal.readers.open import open_log
+from fleetcal.workflows.simulator.camera import SimCamera, pinhole_camera, render, render_depth
+from fleetcal.workflows.simulator.lidar import LidarModel, simulate_scan
+from fleetcal.workflows.simulator.motion import LoopMotion
+from fleetcal.workflows.simulator.raycast import TriangleGrid, build_grid
+from fleetcal.workflows.simulator.scene import RouteSpec, Scene, SceneBuilder, build_scene
+from fleetcal.workflows.simulator.truth import ODOM_FRAME, build_rig, load_truth
+from fleetcal.workflows.simulator.write import START_NS, SimulationOptions, _event_times, simulate_log
 
 PLANE_Z_M = 6.0
 SLANT = np.tan(np.radians(4.0))

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from pipeline.frames import LidarFrame
-from pipeline.transforms import TransformTree, apply, from_xyz_rpy, invert
-from stages.calibration.frame import CalibrationFrame, compensate_ego_motion
-from workflows.ego_motion import sweep_motion as _sweep_motion
+from fleetcal.pipeline.frames import LidarFrame
+from fleetcal.pipeline.transforms import TransformTree, apply, from_xyz_rpy, invert
+from fleetcal.stages.calibration.frame import CalibrationFrame, compensate_ego_motion
+from fleetcal.workflows.ego_motion import sweep_motion as _sweep_motion
 
 STAMP_NS = 1_700_000_000_000_000_000
 SPEED_M_S = 12.0

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.errors import TransformError
-from pipeline.transforms import (
+from fleetcal.pipeline.errors import TransformError
+from fleetcal.pipeline.transforms import (
     TransformTree,
     apply,
     exp_se3,

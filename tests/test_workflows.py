@@ -12,10 +12,10 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from pipeline.transforms import from_quat, invert, rotation_error_deg, translation_error_m
-from readers.decode import decode_tf
-from readers.open import open_log
-from workflows.cli import main
+from fleetcal.pipeline.transforms import from_quat, invert, rotation_error_deg, translation_error_m
+from fleetcal.readers.decode import decode_tf
+from fleetcal.readers.open import open_log
+from fleetcal.workflows.cli import main
 
 SMALL_CONFIG = """
 [calibration]
@@ -139,7 +139,7 @@ def test_calibrate_and_map_commands(sim_log: Path, tmp_path: Path, capsys: pytes
 
 
 def test_calibration_notes_name_suspects_held_and_rough_translations() -> None:
-    from workflows.common import calibration_notes
+    from fleetcal.workflows.common import calibration_notes
 
     pairs = [
         {"camera_topic": "/a", "verdict_reason": "flat optimum", "translation_held": False, "translation_std_m": 0.6},
@@ -260,11 +260,11 @@ def test_calibrate_nuscenes_joint_with_ego_motion(
 def test_camera_model_flag_replaces_the_camera_infos_projection(sim_log: Path, model: str) -> None:
     """``--camera-model`` keeps the CameraInfo's size, K and D and replaces its projection (``log``: as
     logged, plumb_bob in the simulator); a cylindrical panorama projects by azimuth."""
-    from pipeline.config import Config
-    from readers.frames import load_tf_tree
-    from workflows.calibrate import collect_frames
-    from workflows.cli import build_parser
-    from workflows.cmd_calibrate import overrides
+    from fleetcal.pipeline.config import Config
+    from fleetcal.readers.frames import load_tf_tree
+    from fleetcal.workflows.calibrate import collect_frames
+    from fleetcal.workflows.cli import build_parser
+    from fleetcal.workflows.cmd_calibrate import overrides
 
     args = build_parser().parse_args(["calibrate", str(sim_log), "--out", "o", "--camera-model", model])
     assert overrides(args)["calibration.camera_model"] == model

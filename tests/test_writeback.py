@@ -18,15 +18,15 @@ from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 from scipy.spatial.transform import Rotation
 
-from pipeline.errors import InputError, ReaderError
-from pipeline.transforms import from_quat, from_xyz_rpy, invert
-from readers.base import LogReader, RawMessage
-from readers.decode import decode_compressed_image, decode_pointcloud2, decode_tf
-from readers.open import open_log
-from stages.sinks import ros_messages as rm
-from stages.sinks.log_writer import LogWriter
-from stages.sinks.ros_messages import Profile
-from stages.sinks.writeback import (
+from fleetcal.pipeline.errors import InputError, ReaderError
+from fleetcal.pipeline.transforms import from_quat, from_xyz_rpy, invert
+from fleetcal.readers.base import LogReader, RawMessage
+from fleetcal.readers.decode import decode_compressed_image, decode_pointcloud2, decode_tf
+from fleetcal.readers.open import open_log
+from fleetcal.stages.sinks import ros_messages as rm
+from fleetcal.stages.sinks.log_writer import LogWriter
+from fleetcal.stages.sinks.ros_messages import Profile
+from fleetcal.stages.sinks.writeback import (
     MAP_TOPIC,
     OVERLAY_PREFIX,
     TRAJECTORY_TOPIC,

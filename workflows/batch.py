@@ -40,11 +40,11 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from pipeline.config import Config
-from pipeline.errors import ConfigError, FleetcalError, InputError
-from pipeline.progress import Progress
-from pipeline.transforms import from_quat, rotation_error_deg, translation_error_m
-from stages.sinks.tables import POSE_FIELDS, RPY_FIELDS, write_rows
+from fleetcal.pipeline.config import Config
+from fleetcal.pipeline.errors import ConfigError, FleetcalError, InputError
+from fleetcal.pipeline.progress import Progress
+from fleetcal.pipeline.transforms import from_quat, rotation_error_deg, translation_error_m
+from fleetcal.stages.sinks.tables import POSE_FIELDS, RPY_FIELDS, write_rows
 
 __all__ = [
     "FLEET_FILE",
@@ -365,7 +365,7 @@ def plan_jobs(log_paths: Sequence[str], out_root: Path) -> list[LogJob]:
 # ------------------------------------------------------------------------------------- one log
 def process_with_fleetcal(paths: list[str], out_dir: Path, config: Config) -> ProcessSummary:
     """The real per-log recipe: ``workflows.process.process_log(..., workers=0)``, summarised."""
-    from workflows.process import process_log
+    from fleetcal.workflows.process import process_log
 
     result = process_log(paths, out_dir, config, workers=0, quiet=True)
     mapping = result.mapping or {}
@@ -380,7 +380,7 @@ def process_with_fleetcal(paths: list[str], out_dir: Path, config: Config) -> Pr
 
 def fleetcal_is_complete(out_dir: Path) -> bool:
     """``workflows.process.is_complete``: the folder holds the finished outputs of its log."""
-    from workflows.process import is_complete
+    from fleetcal.workflows.process import is_complete
 
     return bool(is_complete(out_dir))
 
@@ -541,7 +541,7 @@ def _run_on_dask(
     """One task per log on a dask cluster; ``record`` is called as each finishes (any order)."""
     from distributed import as_completed
 
-    from pipeline.engine import dask_client
+    from fleetcal.pipeline.engine import dask_client
 
     n = workers if workers is not None else (os.cpu_count() or 1)
     client, cluster = dask_client(scheduler, max(1, min(n, len(jobs))))
@@ -574,7 +574,7 @@ def _run_on_dask(
 def _outcome_from_result_file(job: LogJob) -> LogOutcome | None:
     """A manifest row rebuilt from a complete folder's ``result.json`` (resume without a manifest row)."""
     try:
-        from workflows.process import load_result
+        from fleetcal.workflows.process import load_result
 
         result = load_result(Path(job.out_dir))
     except (ImportError, OSError, ValueError, KeyError, TypeError):

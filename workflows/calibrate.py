@@ -16,13 +16,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.camera_model import with_model
-from pipeline.config import Config
-from pipeline.errors import InputError, ProcessingError, UsageError
-from pipeline.frames import CameraFrame, LidarFrame
-from pipeline.pairing import PairingStats, iter_pairs
-from pipeline.progress import Progress
-from pipeline.transforms import (
+from fleetcal.pipeline.camera_model import with_model
+from fleetcal.pipeline.config import Config
+from fleetcal.pipeline.errors import InputError, ProcessingError, UsageError
+from fleetcal.pipeline.frames import CameraFrame, LidarFrame
+from fleetcal.pipeline.pairing import PairingStats, iter_pairs
+from fleetcal.pipeline.progress import Progress
+from fleetcal.pipeline.transforms import (
     TransformTree,
     apply,
     from_xyz_rpy,
@@ -31,14 +31,14 @@ from pipeline.transforms import (
     to_rpy_deg,
     translation_error_m,
 )
-from readers.base import LogReader
-from readers.frames import load_tf_tree
-from stages.calibration.calibrator import CalibrationResult, calibrate
-from stages.calibration.config import CalibrationConfig as SolverConfig
-from stages.calibration.frame import CalibrationFrame, build_frame
-from stages.sinks import report
-from stages.sinks.tables import CALIBRATION_SCHEMA, FRAMES_SCHEMA, write_rows
-from workflows.ego_motion import scan_motion, sweep_motion
+from fleetcal.readers.base import LogReader
+from fleetcal.readers.frames import load_tf_tree
+from fleetcal.stages.calibration.calibrator import CalibrationResult, calibrate
+from fleetcal.stages.calibration.config import CalibrationConfig as SolverConfig
+from fleetcal.stages.calibration.frame import CalibrationFrame, build_frame
+from fleetcal.stages.sinks import report
+from fleetcal.stages.sinks.tables import CALIBRATION_SCHEMA, FRAMES_SCHEMA, write_rows
+from fleetcal.workflows.ego_motion import scan_motion, sweep_motion
 
 log = logging.getLogger(__name__)
 
@@ -390,8 +390,8 @@ def write_calibration(pairs: list[PairCalibration], config: Config, out_dir: Pat
 
 def landscape(pair: PairCalibration, config: Config, out_dir: Path, steps: int = 21) -> Path | None:
     """Score slices around the optimum (rotation about camera x/y, translation along x/y) as one PNG."""
-    from stages.calibration.landscape import score_landscape
-    from stages.calibration.problem import CalibrationProblem
+    from fleetcal.stages.calibration.landscape import score_landscape
+    from fleetcal.stages.calibration.problem import CalibrationProblem
 
     if not pair.frames:
         return None

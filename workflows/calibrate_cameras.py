@@ -27,15 +27,15 @@ import numpy as np
 import pyarrow as pa
 from numpy.typing import NDArray
 
-from pipeline.config import Config
-from pipeline.errors import DecodeError, InputError, UsageError
-from pipeline.pairing import pair_stamps, raw_header_stamp_ns
-from readers.base import LogReader
-from readers.frames import IMAGE_TYPES, decode_camera_image, require_topic
-from stages.calibration.affine import AffineResult, affine_matrices, calibrate_affine
-from stages.calibration.frame import default_blur_sigma_px
-from stages.image_gradients import ImageGradients, compute_image_gradients
-from stages.sinks.tables import write_rows
+from fleetcal.pipeline.config import Config
+from fleetcal.pipeline.errors import DecodeError, InputError, UsageError
+from fleetcal.pipeline.pairing import pair_stamps, raw_header_stamp_ns
+from fleetcal.readers.base import LogReader
+from fleetcal.readers.frames import IMAGE_TYPES, decode_camera_image, require_topic
+from fleetcal.stages.calibration.affine import AffineResult, affine_matrices, calibrate_affine
+from fleetcal.stages.calibration.frame import default_blur_sigma_px
+from fleetcal.stages.image_gradients import ImageGradients, compute_image_gradients
+from fleetcal.stages.sinks.tables import write_rows
 
 log = logging.getLogger(__name__)
 
@@ -224,8 +224,8 @@ def write_camera_camera(cal: CameraCameraCalibration, out_dir: Path) -> Path:
 
 def run_cli(args: argparse.Namespace, config: Config) -> int:
     """``fleetcal calibrate --camera-camera``: the first ``--camera`` is the base, the second moves."""
-    from workflows.cli import emit_json
-    from workflows.common import open_logs, prepare_out_dir, table, write_config
+    from fleetcal.workflows.cli import emit_json
+    from fleetcal.workflows.common import open_logs, prepare_out_dir, table, write_config
 
     cameras = list(args.camera or [])
     if len(cameras) != 2:

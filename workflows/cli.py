@@ -16,7 +16,7 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
-from pipeline.errors import FleetcalError, UsageError
+from fleetcal.pipeline.errors import FleetcalError, UsageError
 
 COMMANDS = ("demo", "simulate", "inspect", "calibrate", "map", "process", "batch")
 
@@ -61,9 +61,9 @@ def build_parser() -> argparse.ArgumentParser:
     common = common_options()
     for name in COMMANDS:
         try:
-            module = importlib.import_module(f"workflows.cmd_{name}")
+            module = importlib.import_module(f"fleetcal.workflows.cmd_{name}")
         except ModuleNotFoundError as err:
-            if err.name != f"workflows.cmd_{name}":
+            if err.name != f"fleetcal.workflows.cmd_{name}":
                 raise
             continue
         module.register(sub, common)

@@ -14,12 +14,12 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from datetime import UTC, datetime
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from pipeline.errors import ProcessingError, UsageError
-from workflows.cli import emit_json
+from fleetcal.pipeline.errors import ProcessingError, UsageError
+from fleetcal.workflows.cli import emit_json
 
 EXAMPLES = """examples:
   fleetcal batch "fleet/*.mcap" --out results/                 # quote the glob
@@ -53,8 +53,8 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from workflows import batch
-    from workflows.common import config_from_args
+    from fleetcal.workflows import batch
+    from fleetcal.workflows.common import config_from_args
 
     if not (math.isfinite(args.drift_deg) and args.drift_deg >= 0):
         raise UsageError(f"--drift-deg must be a number >= 0, got {args.drift_deg}")
@@ -90,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
 
 def logs_table(result: Any) -> str:
     """One line per log: folder, status, time, per-camera verdicts, map points, error."""
-    from workflows.common import table
+    from fleetcal.workflows.common import table
 
     rows = []
     for o in result.outcomes:
@@ -103,12 +103,12 @@ def logs_table(result: Any) -> str:
 
 def fleet_table(fleet: list[dict[str, Any]], drift_deg: float, drift_m: float) -> str:
     """Per rig and log in time order: T_camera_lidar, change from the previous log, drift flag."""
-    from workflows.common import table
+    from fleetcal.workflows.common import table
 
     rows = []
     for r in fleet:
         start = (
-            datetime.fromtimestamp(r["log_start_ns"] / 1e9, tz=UTC).strftime("%Y-%m-%d %H:%M:%S")
+            datetime.fromtimestamp(r["log_start_ns"] / 1e9, tz=timezone.utc).strftime("%Y-%m-%d %H:%M:%S")
             if r["log_start_ns"] is not None
             else "-"
         )

@@ -6,7 +6,7 @@ import argparse
 import sys
 from typing import Any
 
-from workflows.cli import emit_json
+from fleetcal.workflows.cli import emit_json
 
 EXAMPLES = """examples:
   fleetcal calibrate drive.mcap --out calib/                     # topics detected, initial guess from tf
@@ -107,8 +107,8 @@ def overrides(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from workflows import calibrate as recipe
-    from workflows.common import (
+    from fleetcal.workflows import calibrate as recipe
+    from fleetcal.workflows.common import (
         calibration_notes,
         config_from_args,
         open_logs,
@@ -116,11 +116,11 @@ def run(args: argparse.Namespace) -> int:
         table,
         write_config,
     )
-    from workflows.sensors import resolve_cameras, resolve_lidar
+    from fleetcal.workflows.sensors import resolve_cameras, resolve_lidar
 
     config = config_from_args(args, overrides(args))
     if args.camera_camera:
-        from workflows.calibrate_cameras import run_cli
+        from fleetcal.workflows.calibrate_cameras import run_cli
 
         return run_cli(args, config)
     out_dir = prepare_out_dir(args.out)

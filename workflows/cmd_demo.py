@@ -21,14 +21,14 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.transforms import invert, rotation_error_deg, translation_error_m
-from readers.frames import load_tf_tree
-from readers.open import open_log
-from workflows.cli import emit_json
-from workflows.cmd_simulate import add_simulation_arguments, options_from_args
-from workflows.inspect_log import inspect_log
-from workflows.simulator.truth import load_truth
-from workflows.simulator.write import simulate_log
+from fleetcal.pipeline.transforms import invert, rotation_error_deg, translation_error_m
+from fleetcal.readers.frames import load_tf_tree
+from fleetcal.readers.open import open_log
+from fleetcal.workflows.cli import emit_json
+from fleetcal.workflows.cmd_simulate import add_simulation_arguments, options_from_args
+from fleetcal.workflows.inspect_log import inspect_log
+from fleetcal.workflows.simulator.truth import load_truth
+from fleetcal.workflows.simulator.write import simulate_log
 
 EXAMPLES = """examples:
   fleetcal demo
@@ -106,9 +106,9 @@ def step_process(state: DemoState) -> StepOutcome:
     keep its estimates: ``state.T_camera_lidar_estimate`` and ``state.trajectory_estimate``."""
     import pyarrow.parquet as pq
 
-    from pipeline.config import load_config
-    from pipeline.transforms import from_quat
-    from workflows.process import process_log
+    from fleetcal.pipeline.config import load_config
+    from fleetcal.pipeline.transforms import from_quat
+    from fleetcal.workflows.process import process_log
 
     # The simulator's lidar intensity is the surface reflectivity that also paints the image, so the
     # demo calibrates on it (2 deg / 10 cm -> 0.18 deg / 5.3 cm); the default range+normals, chosen for

@@ -12,10 +12,10 @@ import argparse
 import sys
 from typing import Any
 
-from pipeline.errors import TruncatedLogError
-from readers.open import open_log
-from workflows.cli import emit_json
-from workflows.inspect_log import format_report, inspect_log
+from fleetcal.pipeline.errors import TruncatedLogError
+from fleetcal.readers.open import open_log
+from fleetcal.workflows.cli import emit_json
+from fleetcal.workflows.inspect_log import format_report, inspect_log
 
 EXAMPLES = """examples:
   fleetcal inspect drive.mcap

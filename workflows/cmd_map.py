@@ -6,7 +6,7 @@ import argparse
 import sys
 from typing import Any
 
-from workflows.cli import emit_json
+from fleetcal.workflows.cli import emit_json
 
 EXAMPLES = """examples:
   fleetcal map drive.mcap --out map/                         # lidar topic detected, intensity channel
@@ -35,11 +35,11 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pipeline.engine import Engine
-    from pipeline.errors import UsageError
-    from workflows import mapping
-    from workflows.common import config_from_args, open_logs, prepare_out_dir, write_config
-    from workflows.sensors import resolve_lidar
+    from fleetcal.pipeline.engine import Engine
+    from fleetcal.pipeline.errors import UsageError
+    from fleetcal.workflows import mapping
+    from fleetcal.workflows.common import config_from_args, open_logs, prepare_out_dir, write_config
+    from fleetcal.workflows.sensors import resolve_lidar
 
     if args.channels is not None and args.channels not in mapping.CHANNEL_MODES:
         raise UsageError(f"unknown --channels {args.channels!r}; expected one of {', '.join(mapping.CHANNEL_MODES)}")

@@ -6,7 +6,7 @@ import argparse
 import sys
 from typing import Any
 
-from workflows.cli import emit_json
+from fleetcal.workflows.cli import emit_json
 
 EXAMPLES = """examples:
   fleetcal process drive.mcap --out out/drive
@@ -28,8 +28,8 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from workflows.common import calibration_notes, config_from_args, prepare_out_dir, table
-    from workflows.process import process_log
+    from fleetcal.workflows.common import calibration_notes, config_from_args, prepare_out_dir, table
+    from fleetcal.workflows.process import process_log
 
     config = config_from_args(args, {
         "mapping.channels": args.channels or "combined", "calibration.frames": args.frames,

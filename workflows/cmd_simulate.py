@@ -13,12 +13,12 @@ import argparse
 import sys
 from typing import Any
 
-from pipeline.errors import ConfigError, UsageError
-from workflows.cli import emit_json
-from workflows.simulator.lidar import DEFAULT_LAYOUT, LIDAR_PATTERNS, MAX_ROSETTE_LINES, SUPPORTED_BEAMS
-from workflows.simulator.scene import SCENES
-from workflows.simulator.truth import MAX_CAMERAS
-from workflows.simulator.write import SimulationOptions, simulate_log
+from fleetcal.pipeline.errors import ConfigError, UsageError
+from fleetcal.workflows.cli import emit_json
+from fleetcal.workflows.simulator.lidar import DEFAULT_LAYOUT, LIDAR_PATTERNS, MAX_ROSETTE_LINES, SUPPORTED_BEAMS
+from fleetcal.workflows.simulator.scene import SCENES
+from fleetcal.workflows.simulator.truth import MAX_CAMERAS
+from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log
 
 EXAMPLES = """examples:
   fleetcal simulate /tmp/street.mcap --frames 20 --seed 1

@@ -7,10 +7,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from pipeline.config import Config, load_config, write_toml
-from pipeline.errors import InputError, UsageError
-from readers.base import LogReader
-from readers.open import open_log, truncation_of
+from fleetcal.pipeline.config import Config, load_config, write_toml
+from fleetcal.pipeline.errors import InputError, UsageError
+from fleetcal.readers.base import LogReader
+from fleetcal.readers.open import open_log, truncation_of
 
 CAMERA_AXIS_NAMES = {"x": "x (image right)", "y": "y (image down)", "z": "z (optical axis)"}
 

@@ -13,11 +13,11 @@ import logging
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.errors import TransformError
-from pipeline.frames import LidarFrame
-from pipeline.point_times import classify_point_times
-from pipeline.transforms import Mat4, TransformTree, invert, root_of, twist_of
-from stages.calibration.frame import compensate_ego_motion
+from fleetcal.pipeline.errors import TransformError
+from fleetcal.pipeline.frames import LidarFrame
+from fleetcal.pipeline.point_times import classify_point_times
+from fleetcal.pipeline.transforms import Mat4, TransformTree, invert, root_of, twist_of
+from fleetcal.stages.calibration.frame import compensate_ego_motion
 
 log = logging.getLogger(__name__)
 

@@ -14,13 +14,13 @@ import datetime as dt
 from dataclasses import dataclass, field
 from typing import Any
 
-from pipeline.errors import DecodeError
-from pipeline.point_times import PointTimeKind, classify_point_times
-from readers.base import LogReader
-from readers.decode.pointcloud2 import decode_pointcloud2
-from readers.frames import camera_info_topic_for
-from readers.mcap_reader import TruncationInfo
-from readers.open import truncation_of
+from fleetcal.pipeline.errors import DecodeError
+from fleetcal.pipeline.point_times import PointTimeKind, classify_point_times
+from fleetcal.readers.base import LogReader
+from fleetcal.readers.decode.pointcloud2 import decode_pointcloud2
+from fleetcal.readers.frames import camera_info_topic_for
+from fleetcal.readers.mcap_reader import TruncationInfo
+from fleetcal.readers.open import truncation_of
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")

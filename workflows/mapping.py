@@ -16,18 +16,18 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.config import Config
-from pipeline.engine import Engine
-from pipeline.errors import ConfigError, InputError, TransformError
-from pipeline.frames import LidarFrame
-from pipeline.transforms import TransformTree, root_of, to_quat, translation_error_m
-from readers.base import LogReader
-from readers.frames import load_tf_tree
-from stages.registration.gicp import RegistrationConfig
-from stages.registration.odometry import OdometryStep, VoxelMap, run_odometry
-from stages.registration.pointset import PointSet, pointset_from_frame
-from stages.sinks import report
-from stages.sinks.tables import TRAJECTORY_SCHEMA, map_table, write_rows, write_table
+from fleetcal.pipeline.config import Config
+from fleetcal.pipeline.engine import Engine
+from fleetcal.pipeline.errors import ConfigError, InputError, TransformError
+from fleetcal.pipeline.frames import LidarFrame
+from fleetcal.pipeline.transforms import TransformTree, root_of, to_quat, translation_error_m
+from fleetcal.readers.base import LogReader
+from fleetcal.readers.frames import load_tf_tree
+from fleetcal.stages.registration.gicp import RegistrationConfig
+from fleetcal.stages.registration.odometry import OdometryStep, VoxelMap, run_odometry
+from fleetcal.stages.registration.pointset import PointSet, pointset_from_frame
+from fleetcal.stages.sinks import report
+from fleetcal.stages.sinks.tables import TRAJECTORY_SCHEMA, map_table, write_rows, write_table
 
 log = logging.getLogger(__name__)
 

@@ -17,24 +17,24 @@ from typing import Any, Literal
 
 import numpy as np
 
-from pipeline.camera_model import with_model
-from pipeline.config import Config, write_toml
-from pipeline.engine import Engine
-from pipeline.errors import InputError
-from pipeline.frames import LidarFrame
-from pipeline.pairing import raw_header_stamp_ns
-from pipeline.transforms import TransformTree, apply
-from readers.frames import CameraInfoTracker, decode_camera_image, load_tf_tree
-from readers.open import open_log
-from stages.colorize import colorize, fill_unseen
-from stages.registration.pointset import PointSet
-from stages.sinks.atomic import atomic_path
-from stages.sinks.report import jpeg_overlay
-from stages.sinks.writeback import CalibratedPose, write_back, writeback_path
-from workflows import calibrate as calib
-from workflows import mapping
-from workflows.ego_motion import points_at
-from workflows.sensors import resolve_cameras, resolve_lidar
+from fleetcal.pipeline.camera_model import with_model
+from fleetcal.pipeline.config import Config, write_toml
+from fleetcal.pipeline.engine import Engine
+from fleetcal.pipeline.errors import InputError
+from fleetcal.pipeline.frames import LidarFrame
+from fleetcal.pipeline.pairing import raw_header_stamp_ns
+from fleetcal.pipeline.transforms import TransformTree, apply
+from fleetcal.readers.frames import CameraInfoTracker, decode_camera_image, load_tf_tree
+from fleetcal.readers.open import open_log
+from fleetcal.stages.colorize import colorize, fill_unseen
+from fleetcal.stages.registration.pointset import PointSet
+from fleetcal.stages.sinks.atomic import atomic_path
+from fleetcal.stages.sinks.report import jpeg_overlay
+from fleetcal.stages.sinks.writeback import CalibratedPose, write_back, writeback_path
+from fleetcal.workflows import calibrate as calib
+from fleetcal.workflows import mapping
+from fleetcal.workflows.ego_motion import points_at
+from fleetcal.workflows.sensors import resolve_cameras, resolve_lidar
 
 log = logging.getLogger(__name__)
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from pipeline.errors import InputError, UsageError
-from readers.base import LogReader
-from readers.frames import IMAGE_TYPES, POINTCLOUD2, camera_info_topic_for
+from fleetcal.pipeline.errors import InputError, UsageError
+from fleetcal.readers.base import LogReader
+from fleetcal.readers.frames import IMAGE_TYPES, POINTCLOUD2, camera_info_topic_for
 
 
 @dataclass(frozen=True)

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-from readers.decode.camera_info import decode_camera_info, rectification_rotation, stereo_baseline_m
-from readers.decode.common import stamp_to_ns
-from readers.decode.image import SUPPORTED_ENCODINGS, decode_compressed_image, decode_image
-from readers.decode.pointcloud2 import decode_pointcloud2
-from readers.decode.tf import decode_tf, decode_transform
+from fleetcal.readers.decode.camera_info import decode_camera_info, rectification_rotation, stereo_baseline_m
+from fleetcal.readers.decode.common import stamp_to_ns
+from fleetcal.readers.decode.image import SUPPORTED_ENCODINGS, decode_compressed_image, decode_image
+from fleetcal.readers.decode.pointcloud2 import decode_pointcloud2
+from fleetcal.readers.decode.tf import decode_tf, decode_transform
 
 __all__ = [
     "SUPPORTED_ENCODINGS",

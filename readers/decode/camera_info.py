@@ -7,8 +7,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.camera_model import CameraModel
-from pipeline.errors import DecodeError
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.pipeline.errors import DecodeError
 
 
 def _array(msg: Any, name: str) -> NDArray[np.float64]:

@@ -12,9 +12,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.errors import DecodeError, UnsupportedEncodingError
-from pipeline.frames import CameraFrame
-from readers.decode.common import stamp_to_ns
+from fleetcal.pipeline.errors import DecodeError, UnsupportedEncodingError
+from fleetcal.pipeline.frames import CameraFrame
+from fleetcal.readers.decode.common import stamp_to_ns
 
 _CHANNELS = {
     "mono8": 1, "mono16": 2, "rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4,

@@ -24,10 +24,10 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.errors import DecodeError
-from pipeline.frames import LidarFrame
-from readers.decode.common import stamp_to_ns
-from readers.decode.pointcloud2_kernels import gather_xyz_f32
+from fleetcal.pipeline.errors import DecodeError
+from fleetcal.pipeline.frames import LidarFrame
+from fleetcal.readers.decode.common import stamp_to_ns
+from fleetcal.readers.decode.pointcloud2_kernels import gather_xyz_f32
 
 POINTFIELD_DTYPES: dict[int, np.dtype[Any]] = {
     1: np.dtype(np.int8),

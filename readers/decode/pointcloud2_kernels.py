@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from pipeline.numba_flags import NJIT_FLAGS
+from fleetcal.pipeline.numba_flags import NJIT_FLAGS
 
 
 @njit(**NJIT_FLAGS)

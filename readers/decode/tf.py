@@ -7,9 +7,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.errors import TransformError
-from pipeline.transforms import from_quat
-from readers.decode.common import stamp_to_ns
+from fleetcal.pipeline.errors import TransformError
+from fleetcal.pipeline.transforms import from_quat
+from fleetcal.readers.decode.common import stamp_to_ns
 
 QUAT_NORM_RANGE = (0.9, 1.1)
 """Quaternions with a norm inside this open range are renormalised; others are rejected."""

@@ -4,12 +4,12 @@ Lidar gradients on a camera-centred sphere, GOM / NMI / Levinson metrics evaluat
 batches in numba, a particle swarm plus pattern-search polish, and ``calibrate`` on top.
 """
 
-from stages.calibration.affine import AffineResult, calibrate_affine
-from stages.calibration.calibrator import CalibrationResult, calibrate
-from stages.calibration.config import CalibrationConfig
-from stages.calibration.frame import CalibrationFrame, compensate_ego_motion
-from stages.calibration.landscape import ScoreLandscape, score_landscape
-from stages.calibration.metrics import (
+from fleetcal.stages.calibration.affine import AffineResult, calibrate_affine
+from fleetcal.stages.calibration.calibrator import CalibrationResult, calibrate
+from fleetcal.stages.calibration.config import CalibrationConfig
+from fleetcal.stages.calibration.frame import CalibrationFrame, compensate_ego_motion
+from fleetcal.stages.calibration.landscape import ScoreLandscape, score_landscape
+from fleetcal.stages.calibration.metrics import (
     METRICS,
     GomScorer,
     GradientPlanes,
@@ -18,9 +18,9 @@ from stages.calibration.metrics import (
     NmiScorer,
     levinson_edge_image,
 )
-from stages.calibration.problem import CalibrationProblem
-from stages.calibration.pso import SwarmResult, particle_swarm, pattern_search
-from stages.calibration.sphere_gradients import LidarGradients, compute_sphere_gradients
+from fleetcal.stages.calibration.problem import CalibrationProblem
+from fleetcal.stages.calibration.pso import SwarmResult, particle_swarm, pattern_search
+from fleetcal.stages.calibration.sphere_gradients import LidarGradients, compute_sphere_gradients
 
 __all__ = [
     "METRICS",

@@ -9,9 +9,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.errors import ConfigError, ProcessingError
-from stages.calibration import metric_kernels as mk
-from stages.calibration.pso import particle_swarm, pattern_search
+from fleetcal.pipeline.errors import ConfigError, ProcessingError
+from fleetcal.stages.calibration import metric_kernels as mk
+from fleetcal.stages.calibration.pso import particle_swarm, pattern_search
 
 
 @dataclass

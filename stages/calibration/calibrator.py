@@ -33,13 +33,13 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.errors import ProcessingError
-from pipeline.transforms import rotation_error_deg, translation_error_m
-from stages.calibration.config import CalibrationConfig
-from stages.calibration.frame import CalibrationFrame, Mat4, fold_rectification
-from stages.calibration.observability import AXES, translation_profile, weak_axes
-from stages.calibration.problem import CalibrationProblem, ring_slant_deg
-from stages.calibration.sphere_gradients import cross_ring_neighbours, ring_spacing_rad, sphere_coordinates
+from fleetcal.pipeline.errors import ProcessingError
+from fleetcal.pipeline.transforms import rotation_error_deg, translation_error_m
+from fleetcal.stages.calibration.config import CalibrationConfig
+from fleetcal.stages.calibration.frame import CalibrationFrame, Mat4, fold_rectification
+from fleetcal.stages.calibration.observability import AXES, translation_profile, weak_axes
+from fleetcal.stages.calibration.problem import CalibrationProblem, ring_slant_deg
+from fleetcal.stages.calibration.sphere_gradients import cross_ring_neighbours, ring_spacing_rad, sphere_coordinates
 
 Verdict = Literal["ok", "recalibrated", "suspect"]
 

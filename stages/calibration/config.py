@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from pipeline.errors import ConfigError
-from stages.calibration.metrics import METRICS
+from fleetcal.pipeline.errors import ConfigError
+from fleetcal.stages.calibration.metrics import METRICS
 
 
 @dataclass

@@ -10,11 +10,11 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from pipeline.camera_model import CameraModel
-from pipeline.config import feature_names
-from pipeline.errors import ProcessingError
-from pipeline.frames import CameraFrame, LidarFrame
-from pipeline.transforms import apply, screw_apply
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.pipeline.config import feature_names
+from fleetcal.pipeline.errors import ProcessingError
+from fleetcal.pipeline.frames import CameraFrame, LidarFrame
+from fleetcal.pipeline.transforms import apply, screw_apply
 
 Mat4 = NDArray[np.float64]
 
@@ -160,8 +160,8 @@ def build_frame(lidar: LidarFrame, camera: CameraFrame, feature: str = "range",
     """
     import cv2
 
-    from stages.image_gradients import compute_image_gradients, to_grey_u8
-    from stages.lidar_features import compute_lidar_feature
+    from fleetcal.stages.image_gradients import compute_image_gradients, to_grey_u8
+    from fleetcal.stages.lidar_features import compute_lidar_feature
 
     if camera.camera is None:
         raise ProcessingError(f"camera {camera.topic} has no CameraInfo: intrinsics are unknown")

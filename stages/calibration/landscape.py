@@ -8,8 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.errors import ConfigError
-from stages.calibration.problem import CalibrationProblem
+from fleetcal.pipeline.errors import ConfigError
+from fleetcal.stages.calibration.problem import CalibrationProblem
 
 
 @dataclass

@@ -17,7 +17,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from pipeline.numba_flags import NJIT_FLAGS
+from fleetcal.pipeline.numba_flags import NJIT_FLAGS
 
 MODEL_NONE = 0
 MODEL_PLUMB_BOB = 1

@@ -19,9 +19,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.camera_model import CameraModel
-from pipeline.errors import ProcessingError
-from stages.calibration import metric_kernels as mk
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.pipeline.errors import ProcessingError
+from fleetcal.stages.calibration import metric_kernels as mk
 
 MetricName = Literal["gom", "nmi", "levinson"]
 METRICS: tuple[str, ...] = ("gom", "nmi", "levinson")

@@ -15,8 +15,8 @@ from functools import partial
 import numpy as np
 from numpy.typing import NDArray
 
-from stages.calibration.problem import CalibrationProblem, embed
-from stages.calibration.pso import pattern_search
+from fleetcal.stages.calibration.problem import CalibrationProblem, embed
+from fleetcal.stages.calibration.pso import pattern_search
 
 AXES = ("x", "y", "z")
 

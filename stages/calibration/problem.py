@@ -12,18 +12,18 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from pipeline.camera_model import CameraModel
-from pipeline.errors import ProcessingError
-from pipeline.transforms import apply
-from stages.calibration.config import CalibrationConfig
-from stages.calibration.frame import (
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.pipeline.errors import ProcessingError
+from fleetcal.pipeline.transforms import apply
+from fleetcal.stages.calibration.config import CalibrationConfig
+from fleetcal.stages.calibration.frame import (
     CalibrationFrame,
     Mat4,
     compensate_ego_motion,
     default_blur_sigma_px,
     fold_rectification,
 )
-from stages.calibration.metrics import (
+from fleetcal.stages.calibration.metrics import (
     GomScorer,
     GradientPlanes,
     LevinsonScorer,
@@ -31,8 +31,8 @@ from stages.calibration.metrics import (
     NmiScorer,
     levinson_edge_image,
 )
-from stages.calibration.pso import SwarmResult, particle_swarm, pattern_search
-from stages.calibration.sphere_gradients import (
+from fleetcal.stages.calibration.pso import SwarmResult, particle_swarm, pattern_search
+from fleetcal.stages.calibration.sphere_gradients import (
     camera_sphere_neighbours,
     compute_sphere_gradients,
     depth_discontinuities,
@@ -40,7 +40,7 @@ from stages.calibration.sphere_gradients import (
     lidar_view_gradients,
     ring_spacing_rad,
 )
-from stages.colorize import unoccluded
+from fleetcal.stages.colorize import unoccluded
 
 
 class Scorer(Protocol):

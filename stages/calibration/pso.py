@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.errors import ConfigError
+from fleetcal.pipeline.errors import ConfigError
 
 BatchObjective = Callable[[NDArray[np.float64]], NDArray[np.float64]]
 

@@ -13,10 +13,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from pipeline.camera_model import CameraModel
-from pipeline.errors import ProcessingError
-from pipeline.transforms import apply
-from stages.calibration.sphere_kernels import (
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.pipeline.errors import ProcessingError
+from fleetcal.pipeline.transforms import apply
+from fleetcal.stages.calibration.sphere_kernels import (
     depth_discontinuity_kernel,
     sphere_gradient_kernel,
     sphere_gradient_lsq_kernel,

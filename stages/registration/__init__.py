@@ -8,9 +8,9 @@ Typical use::
     result = register(source, target, np.eye(4), config)   # result.T_target_source
 """
 
-from stages.registration.covariances import estimate_covariances, knn_indices
-from stages.registration.gicp import RegistrationConfig, RegistrationResult, register
-from stages.registration.odometry import (
+from fleetcal.stages.registration.covariances import estimate_covariances, knn_indices
+from fleetcal.stages.registration.gicp import RegistrationConfig, RegistrationResult, register
+from fleetcal.stages.registration.odometry import (
     ODOMETRY_MODES,
     LocalMap,
     OdometryStep,
@@ -18,8 +18,8 @@ from stages.registration.odometry import (
     relative_translation_drift,
     run_odometry,
 )
-from stages.registration.pointset import CHANNEL_MODES, PointSet, pointset_from_frame, prepare_pointset
-from stages.registration.voxel import voxel_downsample
+from fleetcal.stages.registration.pointset import CHANNEL_MODES, PointSet, pointset_from_frame, prepare_pointset
+from fleetcal.stages.registration.voxel import voxel_downsample
 
 __all__ = [
     "CHANNEL_MODES",

@@ -10,8 +10,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from pipeline.errors import ConfigError, InputError
-from stages.registration.covariance_kernels import gicp_covariances_kernel, mcgicp_covariances_kernel
+from fleetcal.pipeline.errors import ConfigError, InputError
+from fleetcal.stages.registration.covariance_kernels import gicp_covariances_kernel, mcgicp_covariances_kernel
 
 MIN_PLANE_VARIANCE_M2 = 1e-10
 

@@ -17,9 +17,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from pipeline.point_times import PointTimes, classify_point_times
-from pipeline.transforms import screw_apply, twist_of
-from stages.registration.pointset import PointSet
+from fleetcal.pipeline.point_times import PointTimes, classify_point_times
+from fleetcal.pipeline.transforms import screw_apply, twist_of
+from fleetcal.stages.registration.pointset import PointSet
 
 
 def sweep_twist(T_prev_curr: NDArray[np.floating], interval_s: float) -> NDArray[np.float64] | None:

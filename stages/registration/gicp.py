@@ -14,15 +14,15 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.errors import ConfigError, InputError, TransformError
-from pipeline.transforms import exp_se3, is_rigid
-from stages.registration.gicp_kernels import (
+from fleetcal.pipeline.errors import ConfigError, InputError, TransformError
+from fleetcal.pipeline.transforms import exp_se3, is_rigid
+from fleetcal.stages.registration.gicp_kernels import (
     ROBUST_CAUCHY,
     ROBUST_HUBER,
     ROBUST_NONE,
     linearize_kernel,
 )
-from stages.registration.pointset import CHANNEL_MODES, PointSet
+from fleetcal.stages.registration.pointset import CHANNEL_MODES, PointSet
 
 METHODS = ("gicp", "mcgicp", "color_icp")
 ROBUST_KERNELS = {"none": ROBUST_NONE, "huber": ROBUST_HUBER, "cauchy": ROBUST_CAUCHY}

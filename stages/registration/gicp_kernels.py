@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from pipeline.numba_flags import NJIT_FLAGS
+from fleetcal.pipeline.numba_flags import NJIT_FLAGS
 
 ROBUST_NONE = 0
 ROBUST_HUBER = 1

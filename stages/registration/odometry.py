@@ -26,14 +26,14 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.errors import ConfigError, InputError
-from pipeline.frames import LidarFrame
-from pipeline.point_times import classify_point_times
-from pipeline.transforms import apply, invert, rotation_error_deg, translation_error_m
-from stages.registration.deskew import deskew_points, deskew_pointset, sweep_twist, sweep_usable
-from stages.registration.gicp import RegistrationConfig, register
-from stages.registration.pointset import PointSet, pointset_from_frame, prepare_pointset
-from stages.registration.voxel import voxel_downsample, voxel_keys
+from fleetcal.pipeline.errors import ConfigError, InputError
+from fleetcal.pipeline.frames import LidarFrame
+from fleetcal.pipeline.point_times import classify_point_times
+from fleetcal.pipeline.transforms import apply, invert, rotation_error_deg, translation_error_m
+from fleetcal.stages.registration.deskew import deskew_points, deskew_pointset, sweep_twist, sweep_usable
+from fleetcal.stages.registration.gicp import RegistrationConfig, register
+from fleetcal.stages.registration.pointset import PointSet, pointset_from_frame, prepare_pointset
+from fleetcal.stages.registration.voxel import voxel_downsample, voxel_keys
 
 log = logging.getLogger(__name__)
 

@@ -15,13 +15,13 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from pipeline.errors import ConfigError, InputError
-from pipeline.frames import LidarFrame
-from stages.registration.covariances import estimate_covariances, knn_indices
-from stages.registration.voxel import voxel_downsample_capped
+from fleetcal.pipeline.errors import ConfigError, InputError
+from fleetcal.pipeline.frames import LidarFrame
+from fleetcal.stages.registration.covariances import estimate_covariances, knn_indices
+from fleetcal.stages.registration.voxel import voxel_downsample_capped
 
 if TYPE_CHECKING:
-    from stages.registration.gicp import RegistrationConfig
+    from fleetcal.stages.registration.gicp import RegistrationConfig
 
 log = logging.getLogger(__name__)
 

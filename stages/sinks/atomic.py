@@ -9,7 +9,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from pipeline.errors import InputError
+from fleetcal.pipeline.errors import InputError
 
 
 def _remove(path: Path) -> None:

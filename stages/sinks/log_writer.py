@@ -26,9 +26,9 @@ from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_
 from rosbags.typesys.msg import denormalize_msgtype
 from rosbags.typesys.store import Typestore
 
-from pipeline.errors import InputError
-from stages.sinks.atomic import atomic_path
-from stages.sinks.ros_messages import Profile, get_store
+from fleetcal.pipeline.errors import InputError
+from fleetcal.stages.sinks.atomic import atomic_path
+from fleetcal.stages.sinks.ros_messages import Profile, get_store
 
 LogFormat = Literal["mcap", "ros1", "ros2"]
 _IDL_MARKER = "=" * 80 + "\nIDL: "

@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.camera_model import CameraModel
-from stages.sinks.atomic import atomic_path
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.stages.sinks.atomic import atomic_path
 
 
 def _write_png(image_bgr: NDArray[np.uint8], path: Path) -> Path:

@@ -18,10 +18,10 @@ from numpy.typing import NDArray
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
-from pipeline.camera_model import CameraModel
-from pipeline.errors import InputError
-from pipeline.transforms import to_quat
-from readers.decode.pointcloud2 import POINTFIELD_DTYPES
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.pipeline.errors import InputError
+from fleetcal.pipeline.transforms import to_quat
+from fleetcal.readers.decode.pointcloud2 import POINTFIELD_DTYPES
 
 Profile = Literal["ros1", "ros2"]
 

@@ -10,7 +10,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from stages.sinks.atomic import atomic_path
+from fleetcal.stages.sinks.atomic import atomic_path
 
 POSE_FIELDS: list[tuple[str, pa.DataType]] = [
     ("tx_m", pa.float64()),

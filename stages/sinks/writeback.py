@@ -35,13 +35,13 @@ from mcap.writer import Writer as McapWriter
 from numpy.typing import NDArray
 from rosbags.typesys.msg import denormalize_msgtype
 
-from pipeline.errors import DecodeError, InputError
-from pipeline.transforms import invert, is_rigid
-from readers.base import ChannelInfo, LogReader, RawMessage
-from readers.typesys import normalize_msgtype
-from stages.sinks import ros_messages
-from stages.sinks.atomic import atomic_path
-from stages.sinks.ros_messages import Profile, get_store
+from fleetcal.pipeline.errors import DecodeError, InputError
+from fleetcal.pipeline.transforms import invert, is_rigid
+from fleetcal.readers.base import ChannelInfo, LogReader, RawMessage
+from fleetcal.readers.typesys import normalize_msgtype
+from fleetcal.stages.sinks import ros_messages
+from fleetcal.stages.sinks.atomic import atomic_path
+from fleetcal.stages.sinks.ros_messages import Profile, get_store
 
 TF_STATIC_TOPIC = "/tf_static"
 MAP_TOPIC = "/fleetcal/map"

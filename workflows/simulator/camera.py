@@ -16,11 +16,11 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 from scipy.special import ndtri
 
-from pipeline.camera_model import CameraModel
-from pipeline.errors import ConfigError
-from workflows.simulator.raycast import TriangleGrid, cast_rays, run_chunked
-from workflows.simulator.raycast_kernels import shade_kernel
-from workflows.simulator.scene import MATERIAL_ALBEDO, MATERIAL_REFLECTIVITY, Scene
+from fleetcal.pipeline.camera_model import CameraModel
+from fleetcal.pipeline.errors import ConfigError
+from fleetcal.workflows.simulator.raycast import TriangleGrid, cast_rays, run_chunked
+from fleetcal.workflows.simulator.raycast_kernels import shade_kernel
+from fleetcal.workflows.simulator.scene import MATERIAL_ALBEDO, MATERIAL_REFLECTIVITY, Scene
 
 SUN_DIR_WORLD = np.array([0.35, -0.45, 0.82]) / np.linalg.norm([0.35, -0.45, 0.82])
 SKY_RGB = np.array([0.55, 0.70, 0.95])

@@ -17,9 +17,9 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.errors import ConfigError
-from workflows.simulator.raycast import TriangleGrid, cast_rays
-from workflows.simulator.scene import Scene, surface_properties
+from fleetcal.pipeline.errors import ConfigError
+from fleetcal.workflows.simulator.raycast import TriangleGrid, cast_rays
+from fleetcal.workflows.simulator.scene import Scene, surface_properties
 
 SUPPORTED_BEAMS = (16, 32, 64, 128)
 LidarPattern = Literal["spinning", "rosette"]

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.errors import ConfigError
-from workflows.simulator.scene import RouteSpec
+from fleetcal.pipeline.errors import ConfigError
+from fleetcal.workflows.simulator.scene import RouteSpec
 
 
 @dataclass(frozen=True)

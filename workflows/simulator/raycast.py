@@ -11,9 +11,9 @@ from functools import cache
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline import numba_flags
-from pipeline.errors import ProcessingError
-from workflows.simulator.raycast_kernels import cast_rays_kernel
+from fleetcal.pipeline import numba_flags
+from fleetcal.pipeline.errors import ProcessingError
+from fleetcal.workflows.simulator.raycast_kernels import cast_rays_kernel
 
 MAX_CELLS = 4_000_000
 _CHUNK_RAYS = 32_768

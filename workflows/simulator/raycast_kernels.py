@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from pipeline.numba_flags import NJIT_FLAGS, NJIT_PARALLEL_FLAGS
+from fleetcal.pipeline.numba_flags import NJIT_FLAGS, NJIT_PARALLEL_FLAGS
 
 _EPS = 1e-12
 

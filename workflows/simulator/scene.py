@@ -18,8 +18,8 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.errors import ConfigError, ProcessingError
-from workflows.simulator.raycast_kernels import BRICKS, CHECKER, PATCHES, SOLID, STRIPES, surface_kernel
+from fleetcal.pipeline.errors import ConfigError, ProcessingError
+from fleetcal.workflows.simulator.raycast_kernels import BRICKS, CHECKER, PATCHES, SOLID, STRIPES, surface_kernel
 
 SceneName = Literal["street", "corridor", "open"]
 SCENES: tuple[str, ...] = ("street", "corridor", "open")

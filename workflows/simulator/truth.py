@@ -18,9 +18,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from pipeline.errors import ConfigError
-from pipeline.transforms import from_xyz_rpy, invert, make_T
-from stages.sinks.atomic import atomic_path
+from fleetcal.pipeline.errors import ConfigError
+from fleetcal.pipeline.transforms import from_xyz_rpy, invert, make_T
+from fleetcal.stages.sinks.atomic import atomic_path
 
 LIDAR_FRAME = "lidar"
 BASE_FRAME = "base_link"

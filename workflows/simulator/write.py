@@ -20,12 +20,12 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from pipeline.errors import ConfigError, ProcessingError
-from pipeline.progress import Progress
-from pipeline.transforms import invert
-from stages.sinks import ros_messages as rm
-from stages.sinks.log_writer import LogWriter
-from workflows.simulator.camera import (
+from fleetcal.pipeline.errors import ConfigError, ProcessingError
+from fleetcal.pipeline.progress import Progress
+from fleetcal.pipeline.transforms import invert
+from fleetcal.stages.sinks import ros_messages as rm
+from fleetcal.stages.sinks.log_writer import LogWriter
+from fleetcal.workflows.simulator.camera import (
     SimCamera,
     fisheye_camera,
     panorama_camera,
@@ -33,7 +33,7 @@ from workflows.simulator.camera import (
     rectified_stereo_camera,
     render,
 )
-from workflows.simulator.lidar import (
+from fleetcal.workflows.simulator.lidar import (
     DEFAULT_LAYOUT,
     LIDAR_PATTERNS,
     MAX_ROSETTE_LINES,
@@ -42,10 +42,10 @@ from workflows.simulator.lidar import (
     LidarScan,
     simulate_scan,
 )
-from workflows.simulator.motion import LoopMotion
-from workflows.simulator.raycast import build_grid
-from workflows.simulator.scene import SCENES, build_scene
-from workflows.simulator.truth import (
+from fleetcal.workflows.simulator.motion import LoopMotion
+from fleetcal.workflows.simulator.raycast import build_grid
+from fleetcal.workflows.simulator.scene import SCENES, build_scene
+from fleetcal.workflows.simulator.truth import (
     BASE_FRAME,
     LIDAR_FRAME,
     LIDAR_TOPIC,

@@ -1,0 +1,1 @@
+../../../workflows/_fleetcal/__init__.py
