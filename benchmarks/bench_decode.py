@@ -33,8 +33,8 @@ from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
 from fleetcal.readers.decode import decode_pointcloud2
-from fleetcal.stages.sinks import ros_messages as rm
-from fleetcal.stages.sinks.log_writer import LogWriter
+from fleetcal.workflows.sinks import ros_messages as rm
+from fleetcal.workflows.sinks.log_writer import LogWriter
 
 TOPIC = "/lidar/points"
 FORMATS = {

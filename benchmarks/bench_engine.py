@@ -29,9 +29,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from fleetcal.pipeline.engine import Engine, warm_up_kernels  # noqa: E402
+from fleetcal.pipeline.engine import Engine  # noqa: E402
 from fleetcal.stages.image_gradients import compute_image_gradients  # noqa: E402
 from fleetcal.stages.lidar_features import compute_lidar_feature, grid_neighbours, lidar_frame_feature  # noqa: E402
+from fleetcal.workflows.frame_sources import STAGE_WARMUPS, LogFrames, warm_up_kernels  # noqa: E402
 
 KITTI = ROOT.parent / "shared" / "data" / "logs" / "kitti_2011_09_26.mcap"
 LIDAR_TOPIC = "/lidar/points"
@@ -129,8 +130,8 @@ def bench_stages(repeats: int) -> None:
 
 
 def write_log(path: Path, frames: int, n_points: int) -> None:
-    from fleetcal.stages.sinks import ros_messages as rm
-    from fleetcal.stages.sinks.log_writer import LogWriter
+    from fleetcal.workflows.sinks import ros_messages as rm
+    from fleetcal.workflows.sinks.log_writer import LogWriter
 
     rng = np.random.default_rng(1)
     base, _ = _synthetic_scan(n_points, rng)
@@ -150,12 +151,12 @@ def _worker_peak_rss() -> int:
 def child(log: str, workers: int, batch_size: int) -> dict[str, Any]:
     """One measured run in this (fresh) process: returns timings and peak RSS in bytes."""
     stage = functools.partial(lidar_frame_feature, kind="normals")
-    with Engine(workers=workers, quiet=True) as engine:
+    with Engine(workers=workers, quiet=True, warmups=STAGE_WARMUPS) as engine:
         if workers:
             engine.client.wait_for_workers(workers, timeout=120)
         t0 = time.perf_counter()
         checksum = 0.0
-        for result in engine.map_frames(log, LIDAR_TOPIC, stage, batch_size=batch_size):
+        for result in engine.map_frames(LogFrames(log), LIDAR_TOPIC, stage, batch_size=batch_size):
             checksum += float(np.nanmean(result.feature))
         wall = time.perf_counter() - t0
         stats = engine.stats

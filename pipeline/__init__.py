@@ -1,1 +1,1 @@
-"""Core of fleetcal: frame and transform types, camera models, config, errors, the dask engine."""
+"""Core of fleetcal: frame and transform types, camera models, config, errors, message-type names, the dask engine."""

@@ -1,10 +1,11 @@
-"""Run a per-frame stage over a log's topic on dask, in batches, streaming results as they finish.
+"""Run a per-frame stage over a topic of a frame source on dask, in batches, streaming results as they finish.
 
-The client reads only the log times of the topic's messages (no decoding) and cuts them into time
-ranges of ``batch_size`` messages. Each task is ``(log paths, topic, start_ns, end_ns, stage_fn)``:
-the worker opens the log itself, decodes the frames of its range, runs the stage on each and returns
-only the stage results, so frames never travel through the client. At most ``max_in_flight`` tasks
-are submitted at a time (a sliding window), which bounds memory on long logs.
+The caller gives the frames as a ``FrameSource`` (``workflows.frame_sources.LogFrames`` opens and decodes a
+log). The client asks the source only for the log times of the topic's messages (no decoding) and cuts them
+into time ranges of ``batch_size`` messages. Each task is ``(source, topic, start_ns, end_ns, stage_fn)``:
+the worker has the source decode the frames of its range (a log source opens the log itself by path), runs
+the stage on each and returns only the stage results, so frames never travel through the client. At most
+``max_in_flight`` tasks are submitted at a time (a sliding window), which bounds memory on long logs.
 
 Frames whose stage raises ``InputError`` (no valid points, blank image...) or that cannot be decoded
 are skipped and counted in ``Engine.stats``. Tasks are retried (``retries``) and distributed
@@ -23,57 +24,75 @@ import time
 import uuid
 from collections.abc import Callable, Generator, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
+from numpy.typing import NDArray
 
 from fleetcal.pipeline.config import EngineConfig
-from fleetcal.pipeline.errors import ConfigError, DecodeError, FleetcalError, InputError, ProcessingError
+from fleetcal.pipeline.errors import ConfigError, FleetcalError, InputError, ProcessingError
 from fleetcal.pipeline.frames import CameraFrame, LidarFrame
 from fleetcal.pipeline.progress import Progress
 
 __all__ = [
-    "CAMERA_TYPES",
-    "LIDAR_TYPES",
     "BatchResult",
     "Engine",
     "EngineStats",
     "FrameBatch",
+    "FrameSource",
     "NumbaWarmup",
+    "SkipFn",
     "plan_batches",
     "run_batch",
-    "warm_up_kernels",
 ]
 
 log = logging.getLogger(__name__)
 
-LIDAR_TYPES = frozenset({"sensor_msgs/msg/PointCloud2"})
-CAMERA_TYPES = frozenset({"sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"})
 _SKIP_EXAMPLES = 5
 
-PathsArg = str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
+SkipFn = Callable[[str, str], None]
+"""``skip(reason, message)``: count one skipped frame under ``reason``; ``message`` names it for the log."""
+
+
+class FrameSource(Protocol):
+    """Where the engine's frames come from (``workflows.frame_sources.LogFrames``: a log's files).
+
+    A source must be picklable and small: every task carries it to its worker, which calls ``frames``.
+    """
+
+    def log_times(self, topic: str, start_ns: int | None, end_ns: int | None) -> NDArray[np.int64]:
+        """Log times, ns, of the topic's messages with ``start_ns <= t < end_ns`` (None: unbounded),
+        read without decoding (client side).
+
+        Raises:
+            InputError: unknown topic, a type the source cannot decode into frames.
+        """
+        ...
+
+    def frames(self, topic: str, start_ns: int, end_ns: int, skip: SkipFn) -> Iterator[LidarFrame | CameraFrame]:
+        """Decoded frames of the topic with ``start_ns <= log time < end_ns`` (worker side); a message that
+        cannot be decoded is reported to ``skip`` and not yielded."""
+        ...
 
 
 @dataclass(frozen=True)
 class FrameBatch:
-    """One task: the messages of ``topic`` with ``start_ns <= log_time_ns < end_ns`` in ``paths``.
+    """One task: the messages of ``topic`` with ``start_ns <= log_time_ns < end_ns`` in ``source``.
 
     Attributes:
         index: position of the batch in log-time order.
-        paths: the log's files (as given to ``readers.open.open_log``).
+        source: the frame source (a log's paths and how to open them).
         topic: lidar or camera topic.
         start_ns, end_ns: log-time range, ns (end exclusive).
         n_messages: messages of the topic in the range (counted on the client).
-        allow_truncated: open damaged logs with what is intact.
     """
 
     index: int
-    paths: tuple[str, ...]
+    source: FrameSource
     topic: str
     start_ns: int
     end_ns: int
     n_messages: int
-    allow_truncated: bool = False
 
 
 @dataclass
@@ -163,67 +182,37 @@ class EngineStats:
             self.skip_examples.extend(batch.skip_examples[:room])
 
 
-def _normalise_paths(log_paths: PathsArg) -> tuple[str, ...]:
-    if isinstance(log_paths, (str, os.PathLike)):
-        return (os.fspath(log_paths),)
-    paths = tuple(os.fspath(p) for p in log_paths)
-    if not paths:
-        raise InputError("no log given")
-    return paths
-
-
 def plan_batches(
-    log_paths: PathsArg,
+    source: FrameSource,
     topic: str,
     batch_size: int = 32,
     start_ns: int | None = None,
     end_ns: int | None = None,
-    allow_truncated: bool = False,
 ) -> list[FrameBatch]:
     """Cut the topic's messages into log-time ranges of ``batch_size`` messages (client side).
 
-    Reads only the messages' log times (``reader.messages``, nothing is decoded). Messages sharing a
+    Reads only the messages' log times (``source.log_times``, nothing is decoded). Messages sharing a
     log time never straddle two batches.
 
     Raises:
-        InputError: unknown topic, a type the engine cannot decode, ``batch_size < 1``; reader errors.
+        InputError: unknown topic, a type the source cannot decode, ``batch_size < 1``; reader errors.
     """
-    from fleetcal.readers.open import open_log
-
     if batch_size < 1:
         raise InputError(f"batch_size must be >= 1, got {batch_size}")
-    paths = _normalise_paths(log_paths)
-    with open_log(list(paths), allow_truncated=allow_truncated) as reader:
-        _check_topic(reader.topics, topic)
-        times = np.fromiter(
-            (raw.log_time_ns for raw in reader.messages([topic], start_ns, end_ns)), dtype=np.int64
-        )
+    times = np.sort(np.asarray(source.log_times(topic, start_ns, end_ns), dtype=np.int64), kind="stable")
     if times.size == 0:
         return []
-    times.sort(kind="stable")
     starts = np.unique(times[::batch_size])
     ends = np.append(starts[1:], times[-1] + 1)
     counts = np.searchsorted(times, ends, side="left") - np.searchsorted(times, starts, side="left")
     return [
-        FrameBatch(i, paths, topic, int(s), int(e), int(c), allow_truncated)
+        FrameBatch(i, source, topic, int(s), int(e), int(c))
         for i, (s, e, c) in enumerate(zip(starts, ends, counts, strict=True))
     ]
 
 
-def _check_topic(topics: dict[str, Any], topic: str) -> str:
-    if topic not in topics:
-        raise InputError(f"topic {topic!r} is not in the log (topics: {', '.join(sorted(topics)) or 'none'})")
-    msgtype = str(topics[topic].msgtype)
-    if msgtype not in LIDAR_TYPES | CAMERA_TYPES:
-        raise InputError(
-            f"topic {topic!r} has type {msgtype}; the engine runs stages on PointCloud2, Image and "
-            "CompressedImage topics"
-        )
-    return msgtype
-
-
 def run_batch(batch: FrameBatch, stage_fn: Callable[[Any], Any]) -> BatchResult:
-    """Worker side: open the log, decode the batch's frames, run ``stage_fn`` on each.
+    """Worker side: decode the batch's frames (``batch.source.frames``), run ``stage_fn`` on each.
 
     A frame is skipped (and counted by reason) when it cannot be decoded, when the stage raises
     ``InputError`` (including "no valid points" / "blank image"), or when the stage returns None.
@@ -240,7 +229,7 @@ def run_batch(batch: FrameBatch, stage_fn: Callable[[Any], Any]) -> BatchResult:
         if len(examples) < _SKIP_EXAMPLES:
             examples.append(message)
 
-    for frame in _iter_frames(batch, skip):
+    for frame in batch.source.frames(batch.topic, batch.start_ns, batch.end_ns, skip):
         reason = _blank_reason(frame)
         if reason is not None:
             skip(reason, f"{batch.topic} @ {frame.stamp_ns}: {reason}")
@@ -278,50 +267,6 @@ def _blank_reason(frame: LidarFrame | CameraFrame) -> str | None:
     return None
 
 
-def _iter_frames(batch: FrameBatch, skip: Callable[[str, str], None]) -> Iterator[LidarFrame | CameraFrame]:
-    """Decoded frames of the batch; a message that cannot be decoded is reported to ``skip``.
-
-    Camera frames get the latest CameraInfo of the topic (``readers.frames.CameraInfoTracker``:
-    seeded with the log's first CameraInfo, updated by those inside the batch's range).
-    """
-    from fleetcal.readers.decode import decode_pointcloud2
-    from fleetcal.readers.frames import CameraInfoTracker, decode_camera_image
-    from fleetcal.readers.open import open_log
-
-    with open_log(list(batch.paths), allow_truncated=batch.allow_truncated) as reader:
-        msgtype = _check_topic(reader.topics, batch.topic)
-        info: CameraInfoTracker | None = None
-        wanted = [batch.topic]
-        if msgtype in CAMERA_TYPES:
-            info = CameraInfoTracker.for_image(reader, batch.topic)
-            if info.topic is not None:
-                wanted.append(info.topic)
-        for raw in reader.messages(wanted, batch.start_ns, batch.end_ns):
-            if info is not None and raw.topic == info.topic:
-                info.update(reader, raw)
-                continue
-            frame: LidarFrame | CameraFrame
-            try:
-                msg = reader.deserialize(raw)
-                if info is None:
-                    frame = decode_pointcloud2(msg, batch.topic, raw.log_time_ns)
-                else:
-                    frame = decode_camera_image(msgtype, msg, batch.topic, raw.log_time_ns)
-                    frame.camera = info.model
-            except DecodeError as err:
-                skip(f"decode {type(err).__name__}", f"{batch.topic} @ log time {raw.log_time_ns}: {err}")
-                continue
-            yield frame
-
-
-def warm_up_kernels() -> None:
-    """Compile (or load from numba's cache) the per-frame kernels in this process."""
-    from fleetcal.stages import image_kernels, lidar_feature_kernels
-
-    image_kernels.warm_up()
-    lidar_feature_kernels.warm_up()
-
-
 try:
     from distributed.diagnostics.plugin import WorkerPlugin as _WorkerPluginBase
 except ImportError:  # pragma: no cover - distributed is a hard dependency
@@ -333,7 +278,7 @@ class NumbaWarmup(_WorkerPluginBase):  # type: ignore[misc,valid-type]
 
     name = "fleetcal-numba-warmup"
 
-    def __init__(self, warmups: Sequence[Callable[[], None]] = (warm_up_kernels,)) -> None:
+    def __init__(self, warmups: Sequence[Callable[[], None]]) -> None:
         self.warmups = tuple(warmups)
 
     def setup(self, worker: Any) -> None:
@@ -350,7 +295,8 @@ class Engine:
         retries: times dask retries a failed task.
         max_in_flight: tasks submitted at once (None: 2 per worker + 1).
         quiet: no progress bar.
-        warmups: functions run once per worker before any task (numba kernel compilation).
+        warmups: functions run once per worker before any task, e.g. compiling the stages' numba kernels
+            (``workflows.frame_sources.STAGE_WARMUPS``); none by default.
         memory_limit: per-worker memory limit of the local cluster (dask syntax, e.g. ``"2GiB"``).
 
     Use as a context manager; ``stats`` holds the counters of the last ``map_frames``.
@@ -364,7 +310,7 @@ class Engine:
         retries: int = 2,
         max_in_flight: int | None = None,
         quiet: bool = False,
-        warmups: Sequence[Callable[[], None]] = (warm_up_kernels,),
+        warmups: Sequence[Callable[[], None]] = (),
         memory_limit: str | float | None = "auto",
     ) -> None:
         if workers is not None and workers < 0:
@@ -386,7 +332,9 @@ class Engine:
         self._warm_in_process = False
 
     @classmethod
-    def from_config(cls, config: EngineConfig, quiet: bool = False) -> Engine:
+    def from_config(
+        cls, config: EngineConfig, quiet: bool = False, warmups: Sequence[Callable[[], None]] = ()
+    ) -> Engine:
         """An engine from the ``[engine]`` section of ``pipeline.config.Config``."""
         return cls(
             scheduler=config.scheduler,
@@ -394,6 +342,7 @@ class Engine:
             retries=config.retries,
             max_in_flight=config.max_in_flight,
             quiet=quiet,
+            warmups=warmups,
         )
 
     @property
@@ -442,7 +391,7 @@ class Engine:
 
     def map_frames(
         self,
-        log_paths: PathsArg,
+        source: FrameSource,
         topic: str,
         stage_fn: Callable[[Any], Any],
         batch_size: int = 32,
@@ -450,20 +399,18 @@ class Engine:
         end_ns: int | None = None,
         *,
         ordered: bool = False,
-        allow_truncated: bool = False,
         desc: str | None = None,
     ) -> Generator[Any, None, None]:
         """Run ``stage_fn(frame)`` on every frame of ``topic`` in the log-time range; yield results.
 
         Args:
-            log_paths: the log (file, folder or files of one recording); workers open it by path.
+            source: the frames, e.g. ``workflows.frame_sources.LogFrames(paths)`` (workers open the log by path).
             topic: a PointCloud2 (``LidarFrame``) or Image / CompressedImage (``CameraFrame``) topic.
             stage_fn: picklable function of one frame; raise ``InputError`` or return None to skip it.
             batch_size: frames per task.
             start_ns, end_ns: log-time range, ns (end exclusive); None for the whole log.
             ordered: yield in log-time order (buffers at most ``max_in_flight`` batches) instead of
                 as batches complete.
-            allow_truncated: read damaged logs as far as they are intact.
             desc: progress-bar label (default: the topic).
 
         Yields:
@@ -474,19 +421,19 @@ class Engine:
             ProcessingError: a stage failed with an unexpected error after the retries.
         """
         t0 = time.perf_counter()
-        batches = plan_batches(log_paths, topic, batch_size, start_ns, end_ns, allow_truncated)
+        batches = plan_batches(source, topic, batch_size, start_ns, end_ns)
         self.stats = EngineStats(frames_total=sum(b.n_messages for b in batches))
         progress = Progress(self.stats.frames_total, desc=desc or topic, quiet=self.quiet)
-        source = self._run_in_process(batches, stage_fn) if self.in_process else self._run_dask(
+        running = self._run_in_process(batches, stage_fn) if self.in_process else self._run_dask(
             batches, stage_fn, ordered
         )
         try:
-            for batch_result in source:
+            for batch_result in running:
                 self.stats.add(batch_result)
                 progress.update(batch_result.frames_done + sum(batch_result.skip_reasons.values()))
                 yield from batch_result.results
         finally:
-            source.close()
+            running.close()
             self.stats.elapsed_s = time.perf_counter() - t0
             progress.close()
             if self.stats.frames_skipped:

@@ -12,7 +12,8 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any, Literal, Protocol
 
-LogFormat = Literal["mcap", "ros1", "ros2"]
+from fleetcal.pipeline.msgtypes import LogFormat
+
 Serialization = Literal["cdr", "ros1"]
 
 
@@ -39,7 +40,7 @@ class TopicInfo:
 
 @dataclass(frozen=True)
 class ChannelInfo:
-    """How a channel is stored in its log, for byte-exact copies (``stages.sinks.writeback``).
+    """How a channel is stored in its log, for byte-exact copies (``workflows.sinks.writeback``).
 
     One object per channel (MCAP channel, ROS bag connection), shared by its messages.
 

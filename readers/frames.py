@@ -10,6 +10,7 @@ from typing import Any
 from fleetcal.pipeline.camera_model import CameraModel
 from fleetcal.pipeline.errors import DecodeError, InputError, TransformError
 from fleetcal.pipeline.frames import CameraFrame, LidarFrame
+from fleetcal.pipeline.msgtypes import CAMERA_INFO, COMPRESSED_IMAGE, IMAGE_TYPES, POINTCLOUD2, TF_MESSAGE
 from fleetcal.pipeline.transforms import TransformTree
 from fleetcal.readers.base import LogReader, RawMessage, TopicInfo
 from fleetcal.readers.decode import (
@@ -23,13 +24,6 @@ from fleetcal.readers.decode import (
 from fleetcal.readers.decode.tf import decode_transform
 
 log = logging.getLogger(__name__)
-
-POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
-IMAGE = "sensor_msgs/msg/Image"
-COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
-CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
-TF_MESSAGE = "tf2_msgs/msg/TFMessage"
-IMAGE_TYPES = (IMAGE, COMPRESSED_IMAGE)
 
 
 def require_topic(reader: LogReader, topic: str, expected: tuple[str, ...]) -> str:

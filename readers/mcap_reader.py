@@ -25,7 +25,8 @@ from mcap.records import Channel, Chunk, Footer, Message, Schema
 from mcap.stream_reader import MAGIC_SIZE, StreamReader, breakup_chunk
 
 from fleetcal.pipeline.errors import ReaderError, TruncatedLogError
-from fleetcal.readers.base import ChannelInfo, LogFormat, RawMessage, Serialization, TopicInfo
+from fleetcal.pipeline.msgtypes import LogFormat
+from fleetcal.readers.base import ChannelInfo, RawMessage, Serialization, TopicInfo
 from fleetcal.readers.common import ContainerReader
 from fleetcal.readers.typesys import DefinitionEncoding, LogTypes, TypeDefinition, build_log_types, normalize_msgtype
 

@@ -12,7 +12,8 @@ from collections.abc import Iterable, Iterator, Sequence
 from typing import Any
 
 from fleetcal.pipeline.errors import DecodeError, ReaderError
-from fleetcal.readers.base import LogFormat, LogReader, RawMessage, TopicInfo
+from fleetcal.pipeline.msgtypes import LogFormat
+from fleetcal.readers.base import LogReader, RawMessage, TopicInfo
 from fleetcal.readers.common import ReaderPlumbing
 from fleetcal.readers.mcap_reader import TruncationInfo
 

@@ -13,7 +13,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from fleetcal.pipeline.errors import InputError, ReaderError
-from fleetcal.readers.base import LogFormat, LogReader
+from fleetcal.pipeline.msgtypes import LogFormat
+from fleetcal.readers.base import LogReader
 from fleetcal.readers.mcap_reader import MCAP_MAGIC, McapLogReader, TruncationInfo
 from fleetcal.readers.merged import MergedLogReader
 from fleetcal.readers.rosbag1_reader import ROSBAG1_MAGIC, Rosbag1LogReader

@@ -15,7 +15,8 @@ from rosbags.rosbag1 import Reader
 from rosbags.rosbag1 import ReaderError as Rosbag1Error
 
 from fleetcal.pipeline.errors import ReaderError
-from fleetcal.readers.base import LogFormat, RawMessage
+from fleetcal.pipeline.msgtypes import LogFormat
+from fleetcal.readers.base import RawMessage
 from fleetcal.readers.common import ContainerReader, rosbags_time_span
 from fleetcal.readers.typesys import channel_info_from_connection, normalize_msgtype, topics_from_connections
 

@@ -23,7 +23,8 @@ from rosbags.rosbag2 import Reader
 from rosbags.rosbag2 import ReaderError as Rosbag2Error
 
 from fleetcal.pipeline.errors import ReaderError
-from fleetcal.readers.base import LogFormat, RawMessage, Serialization
+from fleetcal.pipeline.msgtypes import LogFormat
+from fleetcal.readers.base import RawMessage, Serialization
 from fleetcal.readers.common import ContainerReader, rosbags_time_span
 from fleetcal.readers.typesys import channel_info_from_connection, normalize_msgtype, topics_from_connections
 

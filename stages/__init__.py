@@ -1,1 +1,1 @@
-"""Per-frame stages (features, gradients, covariances) and aggregation (GOM + PSO, MC-GICP, sinks)."""
+"""Per-frame stages (features, gradients, covariances), aggregation (GOM + PSO, MC-GICP), result sinks."""

@@ -1,4 +1,4 @@
-"""Generators of bad inputs: tiny synthetic logs (written with ``stages.sinks.log_writer``), damaged
+"""Generators of bad inputs: tiny synthetic logs (written with ``workflows.sinks.log_writer``), damaged
 copies of them (byte-level MCAP / bag / sqlite damage) and mutated message objects.
 
 Shared by ``tests/test_bad_inputs.py`` (the corpus), ``tests/test_fuzz_decoders.py`` and
@@ -24,8 +24,8 @@ from scipy.spatial.transform import Rotation
 
 from fleetcal.pipeline.camera_model import CameraModel
 from fleetcal.pipeline.transforms import apply, invert, make_T, to_rpy_deg
-from fleetcal.stages.sinks import ros_messages
-from fleetcal.stages.sinks.log_writer import LogWriter
+from fleetcal.workflows.sinks import ros_messages
+from fleetcal.workflows.sinks.log_writer import LogWriter
 
 LIDAR_TOPIC = "/lidar/points"
 CAMERA_TOPIC = "/camera/image_raw"

@@ -502,8 +502,8 @@ def test_ten_million_points_in_one_message_memory_bounded(tmp_path: Path) -> Non
     points = rng.uniform(-50, 50, (n, 3)).astype(np.float32)
     points[:1000] = np.nan
     from fleetcal.stages.registration.pointset import MAX_PREPARED_POINTS
-    from fleetcal.stages.sinks import ros_messages
-    from fleetcal.stages.sinks.log_writer import LogWriter
+    from fleetcal.workflows.sinks import ros_messages
+    from fleetcal.workflows.sinks.log_writer import LogWriter
 
     cloud = ros_messages.pointcloud2(bi.START_NS, "lidar", points, {"intensity": points[:, 0].copy()})
     del points

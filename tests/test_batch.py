@@ -283,9 +283,9 @@ def _fleetcal(*args: str) -> list[str]:
 @pytest.fixture(scope="module")
 def real_logs(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """6 tiny simulated logs (different seeds), a corrupt file and a log without a camera."""
-    from fleetcal.stages.sinks import ros_messages as rm
-    from fleetcal.stages.sinks.log_writer import LogWriter
     from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log
+    from fleetcal.workflows.sinks import ros_messages as rm
+    from fleetcal.workflows.sinks.log_writer import LogWriter
 
     logs = tmp_path_factory.mktemp("fleet")
     for seed in range(6):

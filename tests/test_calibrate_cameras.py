@@ -13,10 +13,10 @@ from numpy.typing import NDArray
 
 from fleetcal.pipeline.camera_model import CameraModel
 from fleetcal.stages.calibration.affine import affine_matrices
-from fleetcal.stages.sinks import ros_messages as rm
-from fleetcal.stages.sinks.log_writer import LogWriter
 from fleetcal.workflows.calibrate_cameras import CAMERA_CAMERA_SCHEMA, select_spread
 from fleetcal.workflows.cli import main
+from fleetcal.workflows.sinks import ros_messages as rm
+from fleetcal.workflows.sinks.log_writer import LogWriter
 
 WIDTH, HEIGHT = 320, 240
 CENTRE = ((WIDTH - 1) / 2.0, (HEIGHT - 1) / 2.0)

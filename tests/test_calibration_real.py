@@ -16,7 +16,6 @@ from numpy.typing import NDArray
 
 from fleetcal.pipeline.config import Config
 from fleetcal.pipeline.errors import ProcessingError
-from fleetcal.pipeline.pairing import iter_pairs
 from fleetcal.pipeline.transforms import invert, rotation_error_deg, translation_error_m
 from fleetcal.readers.frames import load_tf_tree
 from fleetcal.readers.open import open_log
@@ -24,6 +23,7 @@ from fleetcal.stages.calibration import CalibrationConfig, CalibrationFrame, cal
 from fleetcal.stages.calibration.calibrator import resolve_auto_rules
 from fleetcal.stages.calibration.frame import build_frame
 from fleetcal.workflows.calibrate import solver_config
+from fleetcal.workflows.pairing import iter_pairs
 from tests.conftest import SHARED_DATA
 from tests.test_calibration_synthetic import perturb
 

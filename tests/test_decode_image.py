@@ -11,8 +11,8 @@ import pytest
 
 from fleetcal.pipeline.errors import DecodeError, UnsupportedEncodingError
 from fleetcal.readers.decode import SUPPORTED_ENCODINGS, decode_compressed_image, decode_image
-from fleetcal.stages.sinks import ros_messages as rm
-from fleetcal.stages.sinks.ros_messages import Profile
+from fleetcal.workflows.sinks import ros_messages as rm
+from fleetcal.workflows.sinks.ros_messages import Profile
 
 STAMP = 1_600_000_000_000_000_001
 H, W = 24, 32

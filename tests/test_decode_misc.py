@@ -16,14 +16,14 @@ from scipy.spatial.transform import Rotation
 
 from fleetcal.pipeline.camera_model import CameraModel
 from fleetcal.pipeline.errors import DecodeError, TransformError
-from fleetcal.pipeline.pairing import iter_pairs
 from fleetcal.pipeline.transforms import from_xyz_rpy, rotation_error_deg, translation_error_m
 from fleetcal.readers.decode import decode_camera_info, decode_tf, rectification_rotation, stereo_baseline_m
 from fleetcal.readers.frames import CameraInfoTracker, is_rectified_topic, iter_camera_frames
 from fleetcal.readers.open import open_log
-from fleetcal.stages.sinks import ros_messages as rm
-from fleetcal.stages.sinks.log_writer import LogWriter
-from fleetcal.stages.sinks.ros_messages import Profile
+from fleetcal.workflows.pairing import iter_pairs
+from fleetcal.workflows.sinks import ros_messages as rm
+from fleetcal.workflows.sinks.log_writer import LogWriter
+from fleetcal.workflows.sinks.ros_messages import Profile
 
 K = np.array([[600.0, 0.0, 320.5], [0.0, 580.0, 240.25], [0.0, 0.0, 1.0]])
 MODELS = {

@@ -11,8 +11,8 @@ import pytest
 
 from fleetcal.pipeline.errors import DecodeError
 from fleetcal.readers.decode import decode_pointcloud2
-from fleetcal.stages.sinks import ros_messages as rm
-from fleetcal.stages.sinks.ros_messages import Profile
+from fleetcal.workflows.sinks import ros_messages as rm
+from fleetcal.workflows.sinks.ros_messages import Profile
 
 TYPE = "sensor_msgs/msg/PointCloud2"
 STAMP = 1_700_000_000_123_456_789
@@ -262,7 +262,7 @@ def test_relative_time_from_another_field_is_its_own_array() -> None:
 def test_reader_deserialize_keeps_pointcloud_payload_zero_copy(tmp_path: Path, fmt: str, filename: str) -> None:
     """``deserialize`` hands PointCloud2 ``data`` over as a view of the raw message bytes (cdr and ros1)."""
     from fleetcal.readers.open import open_log
-    from fleetcal.stages.sinks.log_writer import LogWriter
+    from fleetcal.workflows.sinks.log_writer import LogWriter
 
     intensity = np.arange(1000, dtype=np.float32)
     profile: Profile = "ros1" if fmt == "ros1" else "ros2"

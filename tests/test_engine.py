@@ -28,8 +28,9 @@ from fleetcal.readers.frames import iter_lidar_frames
 from fleetcal.readers.open import open_log
 from fleetcal.stages.image_gradients import camera_frame_gradients
 from fleetcal.stages.lidar_features import lidar_frame_feature
-from fleetcal.stages.sinks import ros_messages as rm
-from fleetcal.stages.sinks.log_writer import LogWriter
+from fleetcal.workflows.frame_sources import LogFrames
+from fleetcal.workflows.sinks import ros_messages as rm
+from fleetcal.workflows.sinks.log_writer import LogWriter
 
 cloudpickle.register_pickle_by_value(sys.modules[__name__])
 
@@ -96,25 +97,25 @@ def _by_stamp(results: list[Any]) -> dict[int, Any]:
 
 
 def test_plan_batches_cover_every_message_once(log_path: Path) -> None:
-    batches = plan_batches(log_path, LIDAR, batch_size=6)
+    batches = plan_batches(LogFrames(log_path), LIDAR, batch_size=6)
     assert [b.n_messages for b in batches] == [6] * 6 + [4]
     assert all(a.end_ns == b.start_ns for a, b in itertools.pairwise(batches))
     with open_log(log_path) as reader:
         times = [raw.log_time_ns for raw in reader.messages([LIDAR])]
     assert batches[0].start_ns == times[0] and batches[-1].end_ns == times[-1] + 1
-    ranged = plan_batches(log_path, LIDAR, batch_size=4, start_ns=times[10], end_ns=times[30])
+    ranged = plan_batches(LogFrames(log_path), LIDAR, batch_size=4, start_ns=times[10], end_ns=times[30])
     assert sum(b.n_messages for b in ranged) == 20
-    assert plan_batches(log_path, LIDAR, start_ns=times[-1] + 1) == []
+    assert plan_batches(LogFrames(log_path), LIDAR, start_ns=times[-1] + 1) == []
     with pytest.raises(InputError, match="not in the log"):
-        plan_batches(log_path, "/nope")
+        plan_batches(LogFrames(log_path), "/nope")
     with pytest.raises(InputError, match="CameraInfo"):
-        plan_batches(log_path, "/cam/camera_info")
+        plan_batches(LogFrames(log_path), "/cam/camera_info")
 
 
 def test_in_process_results_equal_direct_computation_and_skips_are_counted(log_path: Path) -> None:
     with Engine.from_config(load_config(env={"FLEETCAL_ENGINE__WORKERS": "0"}).engine, quiet=True) as engine:
         assert engine.in_process and engine.client is None
-        results = list(engine.map_frames(log_path, LIDAR, range_stage, batch_size=8))
+        results = list(engine.map_frames(LogFrames(log_path), LIDAR, range_stage, batch_size=8))
         stats = engine.stats
     assert stats.frames_total == N_LIDAR
     assert stats.frames_done == N_LIDAR - len(EMPTY_SCANS) == len(results)
@@ -151,7 +152,7 @@ def _broken_stage(frame: LidarFrame) -> int:
 
 def test_camera_frames_blank_skipped_and_camera_model_attached(log_path: Path) -> None:
     with Engine(workers=0, quiet=True) as engine:
-        results = list(engine.map_frames(log_path, CAMERA, _camera_stage, batch_size=5))
+        results = list(engine.map_frames(LogFrames(log_path), CAMERA, _camera_stage, batch_size=5))
         assert engine.stats.skip_reasons == {"blank image": 1}
     assert len(results) == N_CAMERA - 1
     assert all(fx == 50.0 and magnitude > 0 for _, fx, magnitude in results)
@@ -159,7 +160,7 @@ def test_camera_frames_blank_skipped_and_camera_model_attached(log_path: Path) -
 
 def test_stage_input_errors_and_none_are_skipped_and_bugs_raise(log_path: Path) -> None:
     with Engine(workers=0, quiet=True) as engine:
-        kept = list(engine.map_frames(log_path, LIDAR, _picky_stage, batch_size=16))
+        kept = list(engine.map_frames(LogFrames(log_path), LIDAR, _picky_stage, batch_size=16))
         assert engine.stats.skip_reasons == {
             "stage InputError": 4,
             "stage returned None": 4,
@@ -168,20 +169,20 @@ def test_stage_input_errors_and_none_are_skipped_and_bugs_raise(log_path: Path) 
         assert sorted(kept) == sorted(set(range(N_LIDAR)) - {1, 11, 21, 31, 2, 12, 22, 32, *EMPTY_SCANS})
         assert any("rejected" in msg for msg in engine.stats.skip_examples)
         with pytest.raises(ProcessingError, match=r"_broken_stage failed on /lidar/points.*bug in a stage"):
-            list(engine.map_frames(log_path, LIDAR, _broken_stage))
+            list(engine.map_frames(LogFrames(log_path), LIDAR, _broken_stage))
 
 
 def test_dask_results_equal_in_process(log_path: Path, dask_engine: Engine) -> None:
     with Engine(workers=0, quiet=True) as local:
-        expected = _by_stamp(list(local.map_frames(log_path, LIDAR, range_stage, batch_size=6)))
-    got = list(dask_engine.map_frames(log_path, LIDAR, range_stage, batch_size=6))
+        expected = _by_stamp(list(local.map_frames(LogFrames(log_path), LIDAR, range_stage, batch_size=6)))
+    got = list(dask_engine.map_frames(LogFrames(log_path), LIDAR, range_stage, batch_size=6))
     assert dask_engine.stats.frames_done == len(expected) == len(got)
     assert dask_engine.stats.skip_reasons == {"no valid points": len(EMPTY_SCANS)}
     pids = {pid for pid in dask_engine.client.run(os.getpid).values()}
     assert len(pids) == 2 and os.getpid() not in pids
     for stamp, result in _by_stamp(got).items():
         np.testing.assert_array_equal(result.feature, expected[stamp].feature)
-    ordered = list(dask_engine.map_frames(log_path, LIDAR, range_stage, batch_size=3, ordered=True))
+    ordered = list(dask_engine.map_frames(LogFrames(log_path), LIDAR, range_stage, batch_size=3, ordered=True))
     stamps = [r.stamp_ns for r in ordered]
     assert stamps == sorted(expected)
 
@@ -191,7 +192,7 @@ def test_dask_window_bounds_tasks_in_flight(log_path: Path, dask_engine: Engine)
     engine._client = dask_engine.client
     pending: list[int] = []
     held: list[int] = []
-    for _ in engine.map_frames(log_path, LIDAR, _slow_stage, batch_size=2):
+    for _ in engine.map_frames(LogFrames(log_path), LIDAR, _slow_stage, batch_size=2):
         states = list(dask_engine.client.futures.values())
         pending.append(sum(state.status == "pending" for state in states))
         held.append(len(states))
@@ -211,7 +212,7 @@ def test_killed_worker_tasks_are_retried_and_run_completes(log_path: Path) -> No
         engine.client.wait_for_workers(2, timeout=60)
         pids = list(engine.client.run(os.getpid).values())
         results: list[int] = []
-        for i, stamp in enumerate(engine.map_frames(log_path, LIDAR, _slow_stage, batch_size=4)):
+        for i, stamp in enumerate(engine.map_frames(LogFrames(log_path), LIDAR, _slow_stage, batch_size=4)):
             results.append(stamp)
             if i == 0:
                 os.kill(pids[0], signal.SIGKILL)
@@ -267,11 +268,11 @@ def test_external_scheduler_and_worker_subprocesses(log_path: Path) -> None:
                 time.sleep(0.5)
         with engine:
             worker_pids = set(engine.client.run(os.getpid).values())
-            results = list(engine.map_frames(log_path, LIDAR, range_stage, batch_size=10))
+            results = list(engine.map_frames(LogFrames(log_path), LIDAR, range_stage, batch_size=10))
             assert engine.stats.frames_done == N_LIDAR - len(EMPTY_SCANS)
         assert os.getpid() not in worker_pids
         with Engine(workers=0, quiet=True) as local:
-            expected = _by_stamp(list(local.map_frames(log_path, LIDAR, range_stage, batch_size=10)))
+            expected = _by_stamp(list(local.map_frames(LogFrames(log_path), LIDAR, range_stage, batch_size=10)))
         for stamp, result in _by_stamp(results).items():
             np.testing.assert_array_equal(result.feature, expected[stamp].feature)
     finally:
@@ -286,7 +287,7 @@ def test_external_scheduler_and_worker_subprocesses(log_path: Path) -> None:
 
 
 def test_run_batch_reports_worker_side_counts(log_path: Path) -> None:
-    batch = plan_batches(log_path, LIDAR, batch_size=10)[0]
+    batch = plan_batches(LogFrames(log_path), LIDAR, batch_size=10)[0]
     result = run_batch(batch, range_stage)
     assert result.frames_done == 9 and result.skip_reasons == {"no valid points": 1}
     assert result.worker_pid == os.getpid() and result.worker_s > 0 and result.worker_cpu_s > 0
@@ -322,18 +323,18 @@ def test_progress_bar_is_quiet_for_short_work_and_reports_rate() -> None:
 def test_real_kitti_log_lidar_and_camera_in_process(shared_data: Path) -> None:
     log = shared_data / "logs" / "kitti_2011_09_26.mcap"
     with Engine(workers=0, quiet=True) as engine:
-        lidar = list(engine.map_frames(log, "/kitti/velo/pointcloud", range_stage, ordered=True))
+        lidar = list(engine.map_frames(LogFrames(log), "/kitti/velo/pointcloud", range_stage, ordered=True))
         assert engine.stats.frames_total == engine.stats.frames_done == 2
-        cameras = list(engine.map_frames(log, "/kitti/camera_color_left/image_raw", _camera_stage))
+        cameras = list(engine.map_frames(LogFrames(log), "/kitti/camera_color_left/image_raw", _camera_stage))
     assert [r.n_points > 100_000 for r in lidar] == [True, True]
     assert len(cameras) == 2 and all(abs(fx - 721.5377) < 1e-3 for _, fx, _ in cameras)
 
 
 def test_tasks_carry_no_frames_and_early_stop_cancels(log_path: Path, dask_engine: Engine) -> None:
-    batch = plan_batches(log_path, LIDAR, batch_size=32)[0]
+    batch = plan_batches(LogFrames(log_path), LIDAR, batch_size=32)[0]
     assert batch.n_messages == 32
     assert len(cloudpickle.dumps((batch, range_stage))) < 4096  # 32 scans of ~1500 points would be ~750 kB
-    stream = dask_engine.map_frames(log_path, LIDAR, _slow_stage, batch_size=2)
+    stream = dask_engine.map_frames(LogFrames(log_path), LIDAR, _slow_stage, batch_size=2)
     first = next(stream)
     stream.close()
     assert first >= T0
@@ -341,7 +342,7 @@ def test_tasks_carry_no_frames_and_early_stop_cancels(log_path: Path, dask_engin
     while dask_engine.client.futures and time.monotonic() < deadline:
         time.sleep(0.05)
     assert not dask_engine.client.futures
-    assert len(list(dask_engine.map_frames(log_path, LIDAR, range_stage, batch_size=20))) == N_LIDAR - 2
+    assert len(list(dask_engine.map_frames(LogFrames(log_path), LIDAR, range_stage, batch_size=20))) == N_LIDAR - 2
 
 
 def test_local_cluster_serves_no_dashboard_on_port_8787() -> None:

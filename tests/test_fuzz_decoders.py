@@ -34,8 +34,8 @@ from fleetcal.readers.decode import (
     decode_tf,
 )
 from fleetcal.readers.open import open_log
-from fleetcal.stages.sinks import ros_messages
-from fleetcal.stages.sinks.ros_messages import Profile
+from fleetcal.workflows.sinks import ros_messages
+from fleetcal.workflows.sinks.ros_messages import Profile
 from tests import badinputs as bi
 from tests.conftest import SHARED_DATA
 

@@ -13,10 +13,10 @@ from rosbags.highlevel import AnyReader
 from fleetcal.pipeline.camera_model import CameraModel
 from fleetcal.pipeline.errors import InputError
 from fleetcal.pipeline.transforms import from_xyz_rpy
-from fleetcal.stages.sinks import ros_messages as rm
 from fleetcal.stages.sinks.atomic import atomic_path
-from fleetcal.stages.sinks.log_writer import LogWriter
-from fleetcal.stages.sinks.ros_messages import Profile
+from fleetcal.workflows.sinks import ros_messages as rm
+from fleetcal.workflows.sinks.log_writer import LogWriter
+from fleetcal.workflows.sinks.ros_messages import Profile
 
 FORMATS = [
     pytest.param("mcap", {}, "log.mcap", id="mcap-ros2"),

@@ -9,12 +9,12 @@ import pytest
 
 from fleetcal.pipeline.camera_model import CameraModel
 from fleetcal.pipeline.errors import ConfigError, InputError
-from fleetcal.pipeline.pairing import PairingStats, iter_pairs, pair_stamps, raw_header_stamp_ns
 from fleetcal.readers.frames import camera_info_topic_for, iter_camera_frames, iter_lidar_frames
 from fleetcal.readers.open import open_log
-from fleetcal.stages.sinks import ros_messages as rm
-from fleetcal.stages.sinks.log_writer import LogWriter
-from fleetcal.stages.sinks.ros_messages import Profile
+from fleetcal.workflows.pairing import PairingStats, iter_pairs, pair_stamps, raw_header_stamp_ns
+from fleetcal.workflows.sinks import ros_messages as rm
+from fleetcal.workflows.sinks.log_writer import LogWriter
+from fleetcal.workflows.sinks.ros_messages import Profile
 
 MS = 1_000_000
 K = np.array([[100.0, 0, 40], [0, 100.0, 30], [0, 0, 1]])

@@ -23,10 +23,10 @@ from fleetcal.pipeline.transforms import from_quat, from_xyz_rpy, invert
 from fleetcal.readers.base import LogReader, RawMessage
 from fleetcal.readers.decode import decode_compressed_image, decode_pointcloud2, decode_tf
 from fleetcal.readers.open import open_log
-from fleetcal.stages.sinks import ros_messages as rm
-from fleetcal.stages.sinks.log_writer import LogWriter
-from fleetcal.stages.sinks.ros_messages import Profile
-from fleetcal.stages.sinks.writeback import (
+from fleetcal.workflows.sinks import ros_messages as rm
+from fleetcal.workflows.sinks.log_writer import LogWriter
+from fleetcal.workflows.sinks.ros_messages import Profile
+from fleetcal.workflows.sinks.writeback import (
     MAP_TOPIC,
     OVERLAY_PREFIX,
     TRAJECTORY_TOPIC,

@@ -16,6 +16,7 @@ from fleetcal.pipeline.config import Config, load_config
 from fleetcal.pipeline.engine import Engine
 from fleetcal.readers.open import open_log
 from fleetcal.workflows.calibrate import PairCalibration, run_calibration
+from fleetcal.workflows.frame_sources import STAGE_WARMUPS
 from fleetcal.workflows.mapping import MappingOutcome, run_mapping
 from fleetcal.workflows.process import ProcessResult
 from fleetcal.workflows.process import process_log as _process_log
@@ -73,7 +74,7 @@ def map_log(
     config = _config(settings)
     with open_log(paths if len(paths) > 1 else paths[0], allow_truncated=config.io.allow_truncated) as reader:
         lidar_topic = resolve_lidar(reader, lidar)
-        with Engine(scheduler=config.engine.scheduler, workers=workers, quiet=True) as engine:
+        with Engine(scheduler=config.engine.scheduler, workers=workers, quiet=True, warmups=STAGE_WARMUPS) as engine:
             return run_mapping(paths, reader, lidar_topic, config, engine)
 
 

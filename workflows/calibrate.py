@@ -20,9 +20,9 @@ from fleetcal.pipeline.camera_model import with_model
 from fleetcal.pipeline.config import Config
 from fleetcal.pipeline.errors import InputError, ProcessingError, UsageError
 from fleetcal.pipeline.frames import CameraFrame, LidarFrame
-from fleetcal.pipeline.pairing import PairingStats, iter_pairs
 from fleetcal.pipeline.progress import Progress
 from fleetcal.pipeline.transforms import (
+    Mat4,
     TransformTree,
     apply,
     from_xyz_rpy,
@@ -39,10 +39,9 @@ from fleetcal.stages.calibration.frame import CalibrationFrame, build_frame
 from fleetcal.stages.sinks import report
 from fleetcal.stages.sinks.tables import CALIBRATION_SCHEMA, FRAMES_SCHEMA, write_rows
 from fleetcal.workflows.ego_motion import scan_motion, sweep_motion
+from fleetcal.workflows.pairing import PairingStats, iter_pairs
 
 log = logging.getLogger(__name__)
-
-Mat4 = NDArray[np.float64]
 
 
 @dataclass

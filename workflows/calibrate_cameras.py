@@ -29,13 +29,13 @@ from numpy.typing import NDArray
 
 from fleetcal.pipeline.config import Config
 from fleetcal.pipeline.errors import DecodeError, InputError, UsageError
-from fleetcal.pipeline.pairing import pair_stamps, raw_header_stamp_ns
 from fleetcal.readers.base import LogReader
 from fleetcal.readers.frames import IMAGE_TYPES, decode_camera_image, require_topic
 from fleetcal.stages.calibration.affine import AffineResult, affine_matrices, calibrate_affine
 from fleetcal.stages.calibration.frame import default_blur_sigma_px
 from fleetcal.stages.image_gradients import ImageGradients, compute_image_gradients
 from fleetcal.stages.sinks.tables import write_rows
+from fleetcal.workflows.pairing import pair_stamps, raw_header_stamp_ns
 
 log = logging.getLogger(__name__)
 

@@ -39,6 +39,7 @@ def run(args: argparse.Namespace) -> int:
     from fleetcal.pipeline.errors import UsageError
     from fleetcal.workflows import mapping
     from fleetcal.workflows.common import config_from_args, open_logs, prepare_out_dir, write_config
+    from fleetcal.workflows.frame_sources import STAGE_WARMUPS
     from fleetcal.workflows.sensors import resolve_lidar
 
     if args.channels is not None and args.channels not in mapping.CHANNEL_MODES:
@@ -52,7 +53,8 @@ def run(args: argparse.Namespace) -> int:
     out_dir = prepare_out_dir(args.out)
     with open_logs(args.logs, config, quiet=args.quiet) as reader:
         lidar = resolve_lidar(reader, args.lidar)
-        with Engine(scheduler=config.engine.scheduler, workers=config.engine.workers, quiet=args.quiet) as engine:
+        with Engine(scheduler=config.engine.scheduler, workers=config.engine.workers, quiet=args.quiet,
+                    warmups=STAGE_WARMUPS) as engine:
             outcome = mapping.run_mapping(args.logs, reader, lidar, config, engine)
     write_config(config, out_dir)
     mapping.write_mapping(outcome, out_dir)

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from fleetcal.pipeline.errors import DecodeError
+from fleetcal.pipeline.msgtypes import IMAGE_TYPES, POINTCLOUD2
 from fleetcal.pipeline.point_times import PointTimeKind, classify_point_times
 from fleetcal.readers.base import LogReader
 from fleetcal.readers.decode.pointcloud2 import decode_pointcloud2
@@ -22,8 +23,6 @@ from fleetcal.readers.frames import camera_info_topic_for
 from fleetcal.readers.mcap_reader import TruncationInfo
 from fleetcal.readers.open import truncation_of
 
-POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
-IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 TF_TOPICS = {"/tf": False, "/tf_static": True}
 
 

@@ -28,6 +28,7 @@ from fleetcal.stages.registration.odometry import OdometryStep, VoxelMap, run_od
 from fleetcal.stages.registration.pointset import PointSet, pointset_from_frame
 from fleetcal.stages.sinks import report
 from fleetcal.stages.sinks.tables import TRAJECTORY_SCHEMA, map_table, write_rows, write_table
+from fleetcal.workflows.frame_sources import LogFrames
 
 log = logging.getLogger(__name__)
 
@@ -152,8 +153,8 @@ def run_mapping(
     if stage is None:
         stage = functools.partial(prepare_scan, config=registration_config(config))
     pointsets = list(
-        engine.map_frames(paths, lidar_topic, stage, batch_size=config.engine.batch_size, ordered=True,
-                          allow_truncated=config.io.allow_truncated, desc="scans")
+        engine.map_frames(LogFrames(paths, config.io.allow_truncated), lidar_topic, stage,
+                          batch_size=config.engine.batch_size, ordered=True, desc="scans")
     )  # fmt: skip
     skipped = engine.stats.frames_skipped
     if len(pointsets) < 2:

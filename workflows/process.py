@@ -22,7 +22,6 @@ from fleetcal.pipeline.config import Config, write_toml
 from fleetcal.pipeline.engine import Engine
 from fleetcal.pipeline.errors import InputError
 from fleetcal.pipeline.frames import LidarFrame
-from fleetcal.pipeline.pairing import raw_header_stamp_ns
 from fleetcal.pipeline.transforms import TransformTree, apply
 from fleetcal.readers.frames import CameraInfoTracker, decode_camera_image, load_tf_tree
 from fleetcal.readers.open import open_log
@@ -30,11 +29,13 @@ from fleetcal.stages.colorize import colorize, fill_unseen
 from fleetcal.stages.registration.pointset import PointSet
 from fleetcal.stages.sinks.atomic import atomic_path
 from fleetcal.stages.sinks.report import jpeg_overlay
-from fleetcal.stages.sinks.writeback import CalibratedPose, write_back, writeback_path
 from fleetcal.workflows import calibrate as calib
 from fleetcal.workflows import mapping
 from fleetcal.workflows.ego_motion import points_at
+from fleetcal.workflows.frame_sources import STAGE_WARMUPS
+from fleetcal.workflows.pairing import raw_header_stamp_ns
 from fleetcal.workflows.sensors import resolve_cameras, resolve_lidar
+from fleetcal.workflows.sinks.writeback import CalibratedPose, write_back, writeback_path
 
 log = logging.getLogger(__name__)
 
@@ -222,7 +223,7 @@ def process_log(
         stage = functools.partial(prepare_colored_scan, source=source if uses_color else None, config=reg)
         outcome = None
         try:
-            with Engine(scheduler=scheduler, workers=workers, quiet=quiet) as engine:
+            with Engine(scheduler=scheduler, workers=workers, quiet=quiet, warmups=STAGE_WARMUPS) as engine:
                 outcome = mapping.run_mapping(paths, reader, lidar_topic, map_config, engine, stage)
         except mapping.NotEnoughScansError as err:
             warnings.append(f"mapping skipped: {err}")

@@ -14,9 +14,7 @@ from fleetcal.pipeline.camera_model import CameraModel
 from fleetcal.pipeline.config import feature_names
 from fleetcal.pipeline.errors import ProcessingError
 from fleetcal.pipeline.frames import CameraFrame, LidarFrame
-from fleetcal.pipeline.transforms import apply, screw_apply
-
-Mat4 = NDArray[np.float64]
+from fleetcal.pipeline.transforms import Mat4, apply, screw_apply
 
 
 class GradientImage(Protocol):

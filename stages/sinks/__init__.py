@@ -1,1 +1,1 @@
-"""Sinks: ROS message builders, log writers (MCAP / ROS 1 / ROS 2), Parquet tables, reports."""
+"""Sinks of results: Parquet tables, report PNGs, atomic outputs."""

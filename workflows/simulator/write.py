@@ -15,16 +15,15 @@ import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from fleetcal.pipeline.errors import ConfigError, ProcessingError
+from fleetcal.pipeline.msgtypes import LogFormat
 from fleetcal.pipeline.progress import Progress
 from fleetcal.pipeline.transforms import invert
-from fleetcal.stages.sinks import ros_messages as rm
-from fleetcal.stages.sinks.log_writer import LogWriter
 from fleetcal.workflows.simulator.camera import (
     SimCamera,
     fisheye_camera,
@@ -58,13 +57,14 @@ from fleetcal.workflows.simulator.truth import (
     truth_path_for,
     write_truth,
 )
+from fleetcal.workflows.sinks import ros_messages as rm
+from fleetcal.workflows.sinks.log_writer import LogWriter
 
 START_NS = 1_700_000_000_000_000_000
 """Sensor time of the first scan (fixed: no wall clock)."""
 TF_PERIOD_NS = 20_000_000
 PREFETCH_IMAGES = 2
 DEFAULT_SPEED_M_S = {"street": 8.0, "corridor": 1.5, "open": 5.0}
-LogFormat = Literal["mcap", "ros1", "ros2"]
 
 
 @dataclass(frozen=True)

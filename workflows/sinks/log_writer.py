@@ -27,10 +27,10 @@ from rosbags.typesys.msg import denormalize_msgtype
 from rosbags.typesys.store import Typestore
 
 from fleetcal.pipeline.errors import InputError
+from fleetcal.pipeline.msgtypes import LogFormat
 from fleetcal.stages.sinks.atomic import atomic_path
-from fleetcal.stages.sinks.ros_messages import Profile, get_store
+from fleetcal.workflows.sinks.ros_messages import Profile, get_store
 
-LogFormat = Literal["mcap", "ros1", "ros2"]
 _IDL_MARKER = "=" * 80 + "\nIDL: "
 _SERIALIZATION = {"ros1": "ros1", "ros2": "cdr"}
 

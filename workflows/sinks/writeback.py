@@ -36,12 +36,13 @@ from numpy.typing import NDArray
 from rosbags.typesys.msg import denormalize_msgtype
 
 from fleetcal.pipeline.errors import DecodeError, InputError
+from fleetcal.pipeline.msgtypes import COMPRESSED_IMAGE, PATH, POINTCLOUD2, TF_MESSAGE
 from fleetcal.pipeline.transforms import invert, is_rigid
 from fleetcal.readers.base import ChannelInfo, LogReader, RawMessage
 from fleetcal.readers.typesys import normalize_msgtype
-from fleetcal.stages.sinks import ros_messages
 from fleetcal.stages.sinks.atomic import atomic_path
-from fleetcal.stages.sinks.ros_messages import Profile, get_store
+from fleetcal.workflows.sinks import ros_messages
+from fleetcal.workflows.sinks.ros_messages import Profile, get_store
 
 TF_STATIC_TOPIC = "/tf_static"
 MAP_TOPIC = "/fleetcal/map"
@@ -49,10 +50,6 @@ TRAJECTORY_TOPIC = "/fleetcal/trajectory"
 OVERLAY_PREFIX = "/fleetcal/overlay/"
 MAP_FRAME = "map"
 
-_TFMESSAGE = "tf2_msgs/msg/TFMessage"
-_POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
-_PATH = "nav_msgs/msg/Path"
-_COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 _SERIALIZATION: dict[Profile, str] = {"ros1": "ros1", "ros2": "cdr"}
 
 
@@ -232,12 +229,12 @@ def _new_records(
         _, tf_channel = _first_channel(reader, TF_STATIC_TOPIC)
         same_schema = (
             tf_channel is not None
-            and normalize_msgtype(tf_channel.schema_name) == _TFMESSAGE
+            and normalize_msgtype(tf_channel.schema_name) == TF_MESSAGE
             and tf_channel.message_encoding == _SERIALIZATION[profile]
         )
         if tf_channel is None or not same_schema:
-            tf_channel = _new_channel(TF_STATIC_TOPIC, _TFMESSAGE, profile)
-        add(start_ns, tf_channel, _TFMESSAGE, ros_messages.tf_message(transforms, profile))
+            tf_channel = _new_channel(TF_STATIC_TOPIC, TF_MESSAGE, profile)
+        add(start_ns, tf_channel, TF_MESSAGE, ros_messages.tf_message(transforms, profile))
 
     if map_points_xyz is not None:
         points = np.asarray(map_points_xyz)
@@ -262,7 +259,7 @@ def _new_records(
         msg = ros_messages.pointcloud2(
             end_ns, MAP_FRAME, points.astype(np.float32, copy=False), channels, profile=profile
         )
-        add(end_ns, _new_channel(MAP_TOPIC, _POINTCLOUD2, profile), _POINTCLOUD2, msg)
+        add(end_ns, _new_channel(MAP_TOPIC, POINTCLOUD2, profile), POINTCLOUD2, msg)
 
     if len(trajectory_stamps_ns) != len(trajectory_T_map_lidar):
         raise InputError(
@@ -271,14 +268,14 @@ def _new_records(
     if len(trajectory_stamps_ns):
         poses = [_check_T(T, "a trajectory pose") for T in trajectory_T_map_lidar]
         msg = ros_messages.path(end_ns, MAP_FRAME, [int(s) for s in trajectory_stamps_ns], poses, profile)
-        add(end_ns, _new_channel(TRAJECTORY_TOPIC, _PATH, profile), _PATH, msg)
+        add(end_ns, _new_channel(TRAJECTORY_TOPIC, PATH, profile), PATH, msg)
 
-    CompressedImage = get_store(profile).types[_COMPRESSED_IMAGE]
+    CompressedImage = get_store(profile).types[COMPRESSED_IMAGE]
     for camera_topic, images in overlays.items():
         if not images:
             continue
         topic = OVERLAY_PREFIX + camera_topic.lstrip("/")
-        channel = _new_channel(topic, _COMPRESSED_IMAGE, profile)
+        channel = _new_channel(topic, COMPRESSED_IMAGE, profile)
         frame_id = _frame_of(reader, camera_topic)
         for stamp_ns, jpeg in images:
             msg = CompressedImage(
@@ -286,7 +283,7 @@ def _new_records(
                 format="jpeg",
                 data=np.frombuffer(jpeg, dtype=np.uint8).copy(),
             )
-            add(stamp_ns, channel, _COMPRESSED_IMAGE, msg)
+            add(stamp_ns, channel, COMPRESSED_IMAGE, msg)
 
     records.sort(key=lambda record: record.log_time_ns)
     return records
