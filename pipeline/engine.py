@@ -65,6 +65,7 @@ class FrameBatch:
         start_ns, end_ns: log-time range, ns (end exclusive).
         n_messages: messages of the topic in the range (counted on the client).
         allow_truncated: open damaged logs with what is intact.
+        max_range_m: lidar points farther than this are dropped at decode, metres (None: the decoder's default).
     """
 
     index: int
@@ -74,6 +75,7 @@ class FrameBatch:
     end_ns: int
     n_messages: int
     allow_truncated: bool = False
+    max_range_m: float | None = None
 
 
 @dataclass
@@ -95,7 +97,9 @@ def dask_client(scheduler: str | None, n_workers: int, memory_limit: str | float
     or, without one, of a new ``LocalCluster`` of ``n_workers`` single-threaded worker processes on this
     machine. The local cluster has no dashboard, and its scheduler's HTTP server (health and metrics)
     listens on a free localhost port, not on 8787 of every interface: jobs running side by side neither
-    clash ("port 8787 is already in use") nor expose a server.
+    clash ("port 8787 is already in use") nor expose a server. Its workers log only CRITICAL records: a
+    worker that fails a task reports it through the task's exception, and the ERROR records distributed
+    writes while closing (a heartbeat in flight when the worker's connection pool closes) are noise.
 
     Raises:
         ConfigError: the scheduler cannot be reached.
@@ -114,7 +118,7 @@ def dask_client(scheduler: str | None, n_workers: int, memory_limit: str | float
         host="127.0.0.1",
         dashboard_address=None,
         scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
-        silence_logs=logging.ERROR,
+        silence_logs=logging.CRITICAL,
         memory_limit=memory_limit,
     )
     return Client(cluster), cluster
@@ -179,6 +183,7 @@ def plan_batches(
     start_ns: int | None = None,
     end_ns: int | None = None,
     allow_truncated: bool = False,
+    max_range_m: float | None = None,
 ) -> list[FrameBatch]:
     """Cut the topic's messages into log-time ranges of ``batch_size`` messages (client side).
 
@@ -205,7 +210,7 @@ def plan_batches(
     ends = np.append(starts[1:], times[-1] + 1)
     counts = np.searchsorted(times, ends, side="left") - np.searchsorted(times, starts, side="left")
     return [
-        FrameBatch(i, paths, topic, int(s), int(e), int(c), allow_truncated)
+        FrameBatch(i, paths, topic, int(s), int(e), int(c), allow_truncated, max_range_m)
         for i, (s, e, c) in enumerate(zip(starts, ends, counts, strict=True))
     ]
 
@@ -304,7 +309,8 @@ def _iter_frames(batch: FrameBatch, skip: Callable[[str, str], None]) -> Iterato
             try:
                 msg = reader.deserialize(raw)
                 if info is None:
-                    frame = decode_pointcloud2(msg, batch.topic, raw.log_time_ns)
+                    frame = decode_pointcloud2(msg, batch.topic, raw.log_time_ns,
+                                               *(() if batch.max_range_m is None else (batch.max_range_m,)))
                 else:
                     frame = decode_camera_image(msgtype, msg, batch.topic, raw.log_time_ns)
                     frame.camera = info.model
@@ -451,6 +457,7 @@ class Engine:
         *,
         ordered: bool = False,
         allow_truncated: bool = False,
+        max_range_m: float | None = None,
         desc: str | None = None,
     ) -> Generator[Any, None, None]:
         """Run ``stage_fn(frame)`` on every frame of ``topic`` in the log-time range; yield results.
@@ -464,6 +471,7 @@ class Engine:
             ordered: yield in log-time order (buffers at most ``max_in_flight`` batches) instead of
                 as batches complete.
             allow_truncated: read damaged logs as far as they are intact.
+            max_range_m: lidar points farther than this are dropped at decode, metres (None: decoder default).
             desc: progress-bar label (default: the topic).
 
         Yields:
@@ -474,7 +482,7 @@ class Engine:
             ProcessingError: a stage failed with an unexpected error after the retries.
         """
         t0 = time.perf_counter()
-        batches = plan_batches(log_paths, topic, batch_size, start_ns, end_ns, allow_truncated)
+        batches = plan_batches(log_paths, topic, batch_size, start_ns, end_ns, allow_truncated, max_range_m)
         self.stats = EngineStats(frames_total=sum(b.n_messages for b in batches))
         progress = Progress(self.stats.frames_total, desc=desc or topic, quiet=self.quiet)
         source = self._run_in_process(batches, stage_fn) if self.in_process else self._run_dask(

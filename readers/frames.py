@@ -20,6 +20,7 @@ from fleetcal.readers.decode import (
     rectification_rotation,
     stereo_baseline_m,
 )
+from fleetcal.readers.decode.pointcloud2 import MAX_RANGE_M
 from fleetcal.readers.decode.tf import decode_transform
 
 log = logging.getLogger(__name__)
@@ -43,9 +44,11 @@ def require_topic(reader: LogReader, topic: str, expected: tuple[str, ...]) -> s
 
 
 def iter_lidar_frames(
-    reader: LogReader, topic: str, start_ns: int | None = None, end_ns: int | None = None
+    reader: LogReader, topic: str, start_ns: int | None = None, end_ns: int | None = None,
+    max_range_m: float = MAX_RANGE_M,
 ) -> Iterator[LidarFrame]:
-    """Decoded PointCloud2 frames of ``topic`` with ``start_ns <= log time < end_ns``, in log order.
+    """Decoded PointCloud2 frames of ``topic`` with ``start_ns <= log time < end_ns``, in log order; points
+    beyond ``max_range_m`` (metres) dropped (``decode_pointcloud2``).
 
     Raises:
         InputError: the topic is missing or not a PointCloud2 topic.
@@ -53,7 +56,7 @@ def iter_lidar_frames(
     """
     require_topic(reader, topic, (POINTCLOUD2,))
     for raw in reader.messages(topics=[topic], start_ns=start_ns, end_ns=end_ns):
-        yield decode_pointcloud2(reader.deserialize(raw), topic, raw.log_time_ns)
+        yield decode_pointcloud2(reader.deserialize(raw), topic, raw.log_time_ns, max_range_m)
 
 
 def camera_info_topic_for(image_topic: str, topics: Mapping[str, TopicInfo] | Iterable[str]) -> str | None:

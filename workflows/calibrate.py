@@ -178,7 +178,7 @@ def collect_frames(
     sparse = 0
     for lidar, camera in iter_pairs(
         reader, lidar_topic, camera_topic, config.io.pairing_tolerance_ns, max_pairs=c.frames, stats=stats,
-        rectified_topics=config.io.rectified_topics,
+        rectified_topics=config.io.rectified_topics, max_range_m=config.io.max_range_m,
     ):
         out.lidar_frame, out.camera_frame = lidar.frame_id.lstrip("/"), camera.frame_id.lstrip("/")
         if lidar.n_points < c.min_points:

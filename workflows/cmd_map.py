@@ -38,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
     from fleetcal.pipeline.engine import Engine
     from fleetcal.pipeline.errors import UsageError
     from fleetcal.workflows import mapping
-    from fleetcal.workflows.common import config_from_args, open_logs, prepare_out_dir, write_config
+    from fleetcal.workflows.common import MAP_OUTPUTS, config_from_args, open_logs, prepare_out_dir, write_config
     from fleetcal.workflows.sensors import resolve_lidar
 
     if args.channels is not None and args.channels not in mapping.CHANNEL_MODES:
@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
         "mapping.deskew": False if args.no_deskew else None,
         "io.allow_truncated": True if args.allow_truncated else None,
     })  # fmt: skip
-    out_dir = prepare_out_dir(args.out)
+    out_dir = prepare_out_dir(args.out, MAP_OUTPUTS)
     with open_logs(args.logs, config, quiet=args.quiet) as reader:
         lidar = resolve_lidar(reader, args.lidar)
         with Engine(scheduler=config.engine.scheduler, workers=config.engine.workers, quiet=args.quiet) as engine:

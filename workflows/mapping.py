@@ -153,7 +153,7 @@ def run_mapping(
         stage = functools.partial(prepare_scan, config=registration_config(config))
     pointsets = list(
         engine.map_frames(paths, lidar_topic, stage, batch_size=config.engine.batch_size, ordered=True,
-                          allow_truncated=config.io.allow_truncated, desc="scans")
+                          allow_truncated=config.io.allow_truncated, max_range_m=config.io.max_range_m, desc="scans")
     )  # fmt: skip
     skipped = engine.stats.frames_skipped
     if len(pointsets) < 2:

@@ -52,7 +52,9 @@ def decode_image_array(
 
     Raises:
         UnsupportedEncodingError: an encoding outside ``SUPPORTED_ENCODINGS``.
-        DecodeError: step shorter than a row or data shorter than the image.
+        DecodeError: an empty image (width or height 0), step shorter than a row, or data shorter than
+            the image. Sizes are checked against the data before anything is allocated, so a header
+            claiming 100000 x 100000 pixels over a few bytes costs nothing.
     """
     name = _ALIASES.get(encoding, encoding).lower()
     if name not in _CHANNELS:
@@ -61,23 +63,17 @@ def decode_image_array(
         )
     bpp = _CHANNELS[name]
     row_bytes = width * bpp
-    if height < 0 or width < 0:
-        raise DecodeError(f"image size {width}x{height} is negative")
+    if height <= 0 or width <= 0:
+        raise DecodeError(f"image size {width}x{height} is empty")
     if step < row_bytes:
         raise DecodeError(
             f"image step {step} is shorter than a row of {width} {encoding} pixels ({row_bytes} bytes)"
         )
     buf = _payload(data)
-    needed = (height - 1) * step + row_bytes if height and width else 0
+    needed = (height - 1) * step + row_bytes
     if buf.size < needed:
         raise DecodeError(f"image data has {buf.size} bytes, {needed} needed for {width}x{height} {encoding}")
-    rows = np.ndarray((height, row_bytes), dtype=np.uint8, buffer=buf, strides=(step, 1)) if needed else None
-    if rows is None:
-        shape = (height, width, 3) if bpp >= 3 or name.startswith("bayer") else (height, width)
-        dtype = np.uint16 if name == "mono16" else np.uint8
-        return np.zeros(shape, dtype=dtype), "mono16" if name == "mono16" else (
-            "rgb8" if len(shape) == 3 else "mono8"
-        )
+    rows = np.ndarray((height, row_bytes), dtype=np.uint8, buffer=buf, strides=(step, 1))
     if name == "mono8":
         return np.ascontiguousarray(rows), "mono8"
     if name == "mono16":
@@ -100,7 +96,7 @@ def decode_image(msg: Any, topic: str, log_time_ns: int = 0) -> CameraFrame:
 
     Raises:
         UnsupportedEncodingError: encoding other than mono8, mono16, rgb8, bgr8, rgba8, bgra8, bayer_*8.
-        DecodeError: step shorter than a row, or data shorter than height x step.
+        DecodeError: width or height 0, step shorter than a row, or data shorter than height x step.
     """
     image, encoding = decode_image_array(
         msg.data, int(msg.height), int(msg.width), int(msg.step), str(msg.encoding), bool(msg.is_bigendian)
