@@ -63,9 +63,13 @@ def run(args: argparse.Namespace) -> int:
         s = outcome.summary()
         print(f"{s['scans']} scans, path {s['path_length_m']:.1f} m, mean fitness {s['mean_fitness'] or 0:.3f}, "
               f"{len(s['failed_pairs'])} failed and {len(s['degenerate_pairs'])} degenerate pairs, "
+              f"{len(s['implausible_motion'])} implausible motions, "
               f"{s['map_points']} map points"
               + (f", {s['deskewed_scans']} scans de-skewed" if s["deskewed_scans"] else ""))  # fmt: skip
         print(f"wrote {out_dir}/trajectory.parquet, map.parquet, report/map_top.png", file=sys.stderr)
-    if outcome.scans_skipped and not args.quiet:
-        print(f"warning: skipped {outcome.scans_skipped} unusable scans (empty, NaN or undecodable)", file=sys.stderr)
+    for line in outcome.warnings():
+        print(f"warning: {line}", file=sys.stderr)
+    if outcome.scans_skipped:
+        print(f"warning: skipped {outcome.scans_skipped} unusable scans (empty, NaN, beyond io.max_range_m or "
+              "undecodable)", file=sys.stderr)
     return 0

@@ -91,6 +91,48 @@ def decode_image_array(
     return np.asarray(cv2.cvtColor(np.ascontiguousarray(pixels), cv2.COLOR_BGRA2RGB)), "rgb8"
 
 
+def check_image(msg: Any) -> None:
+    """Check a ``sensor_msgs/Image``'s sizes and encoding against its data without decoding a pixel.
+
+    Raises:
+        UnsupportedEncodingError, DecodeError: as ``decode_image`` would.
+    """
+    name = _ALIASES.get(str(msg.encoding), str(msg.encoding)).lower()
+    if name not in _CHANNELS:
+        raise UnsupportedEncodingError(
+            f"image encoding {msg.encoding!r} is not supported (supported: {', '.join(SUPPORTED_ENCODINGS)})"
+        )
+    height, width, step = int(msg.height), int(msg.width), int(msg.step)
+    row_bytes = width * _CHANNELS[name]
+    if height <= 0 or width <= 0:
+        raise DecodeError(f"image size {width}x{height} is empty")
+    if step < row_bytes:
+        raise DecodeError(
+            f"image step {step} is shorter than a row of {width} {msg.encoding} pixels ({row_bytes} bytes)"
+        )
+    size = _payload(msg.data).size
+    needed = (height - 1) * step + row_bytes
+    if size < needed:
+        raise DecodeError(f"image data has {size} bytes, {needed} needed for {width}x{height} {msg.encoding}")
+
+
+def check_compressed_image(msg: Any) -> None:
+    """Check a ``sensor_msgs/CompressedImage`` without decoding it: a supported format, some data, and a
+    jpeg's end-of-image marker (``decode_compressed_image`` finds the rest).
+
+    Raises:
+        UnsupportedEncodingError, DecodeError: as ``decode_compressed_image`` would for these.
+    """
+    fmt = str(msg.format).lower()
+    if fmt and not any(token in fmt for token in _COMPRESSED_FORMATS):
+        raise UnsupportedEncodingError(f"compressed image format {msg.format!r} is not supported (jpeg, png)")
+    buf = _payload(msg.data)
+    if not buf.size:
+        raise DecodeError(f"compressed image ({msg.format or 'no format'}) has no data")
+    if buf[:2].tobytes() == _JPEG_SOI and _JPEG_EOI not in buf[-_EOI_SEARCH_BYTES:].tobytes():
+        raise DecodeError(f"jpeg image ({buf.size} bytes) is truncated: no end-of-image marker")
+
+
 def decode_image(msg: Any, topic: str, log_time_ns: int = 0) -> CameraFrame:
     """Decode a ``sensor_msgs/Image`` message object (no camera model attached).
 

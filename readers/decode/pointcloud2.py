@@ -19,6 +19,7 @@ is read as 1. Unnamed fields are padding.
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
@@ -183,20 +184,29 @@ def _xyz_kernel(
     return (points if kept == n else points[:kept].copy()), valid
 
 
-def decode_pointcloud2(msg: Any, topic: str, log_time_ns: int = 0, max_range_m: float = MAX_RANGE_M) -> LidarFrame:
-    """Decode a PointCloud2 message object (rosbags, ROS 1 or ROS 2) into a LidarFrame.
+@dataclass(frozen=True)
+class CloudLayout:
+    """The checked layout of a PointCloud2 message (``check_pointcloud2``)."""
 
-    NaN/infinite points, points farther than ``max_range_m`` (metres, ``io.max_range_m``: corrupt values
-    such as 1e30) and all-zero (x = y = z = 0, "no return") points are dropped and counted in
-    ``dropped_points``. Organised clouds (height > 1) keep ``organized_shape`` (height, width) and
-    ``organized_index`` (flat grid index of each kept point). height or width 0 gives an empty frame.
+    height: int
+    width: int
+    point_step: int
+    row_step: int
+    record: np.dtype[Any]
+    """Structured dtype of one point."""
+    counts: dict[str, int]
+    """Count of each named field."""
+    data: NDArray[np.uint8]
+    """The payload, not copied."""
+
+
+def check_pointcloud2(msg: Any) -> CloudLayout:
+    """The layout of a PointCloud2 message, checked against its payload without reading any point.
 
     Raises:
         DecodeError: unknown datatype code, a field past the end of a point, missing x/y/z, a
             row_step shorter than a row, or data shorter than height * width * point_step.
     """
-    stamp_ns = stamp_to_ns(msg.header.stamp)
-    frame_id = str(msg.header.frame_id).lstrip("/")
     height, width = int(msg.height), int(msg.width)
     point_step, row_step = int(msg.point_step), int(msg.row_step)
     n = height * width
@@ -216,6 +226,27 @@ def decode_pointcloud2(msg: Any, topic: str, log_time_ns: int = 0, max_range_m: 
             f"PointCloud2 data has {data.size} bytes, {needed} needed for {height}x{width}"
             f" points of {point_step} bytes"
         )
+    return CloudLayout(height, width, point_step, row_step, record, counts, data)
+
+
+def decode_pointcloud2(msg: Any, topic: str, log_time_ns: int = 0, max_range_m: float = MAX_RANGE_M) -> LidarFrame:
+    """Decode a PointCloud2 message object (rosbags, ROS 1 or ROS 2) into a LidarFrame.
+
+    NaN/infinite points, points farther than ``max_range_m`` (metres, ``io.max_range_m``: corrupt values
+    such as 1e30) and all-zero (x = y = z = 0, "no return") points are dropped and counted in
+    ``dropped_points``. Organised clouds (height > 1) keep ``organized_shape`` (height, width) and
+    ``organized_index`` (flat grid index of each kept point). height or width 0 gives an empty frame.
+
+    Raises:
+        DecodeError: unknown datatype code, a field past the end of a point, missing x/y/z, a
+            row_step shorter than a row, or data shorter than height * width * point_step.
+    """
+    stamp_ns = stamp_to_ns(msg.header.stamp)
+    frame_id = str(msg.header.frame_id).lstrip("/")
+    layout = check_pointcloud2(msg)
+    height, width, point_step, row_step = layout.height, layout.width, layout.point_step, layout.row_step
+    record, counts, data = layout.record, layout.counts, layout.data
+    n = height * width
     if n:
         grid = np.ndarray((height, width), dtype=record, buffer=data, strides=(row_step, point_step))
     else:
