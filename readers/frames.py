@@ -213,14 +213,17 @@ def tf_structure_problems(tree: TransformTree) -> list[str]:
 
 
 def _loop_through(start: str, parents: Mapping[str, set[str]]) -> list[str] | None:
-    """Frames of a parent -> child loop through ``start`` (parent first), or None (depth-first search)."""
+    """Frames of a parent -> child loop through ``start`` (parent first, from the smallest name), or None
+    (depth-first search)."""
     stack: list[tuple[str, list[str]]] = [(start, [start])]
     seen: set[str] = set()
     while stack:
         node, path = stack.pop()
         for parent in sorted(parents.get(node, ())):
             if parent == start:
-                return path[::-1]
+                loop = path[::-1]
+                first = loop.index(min(loop))
+                return loop[first:] + loop[:first]
             if parent not in seen:
                 seen.add(parent)
                 stack.append((parent, [*path, parent]))

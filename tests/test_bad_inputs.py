@@ -666,7 +666,7 @@ def out_is_a_file(tmp: Path, command: str) -> Path:
 
 EMPTY_IMAGE = "image size 0x0 is empty"
 HUGE = "image data has 64 bytes, 10000000000 needed for 100000x100000 mono8"
-LOOP = "tf edges form a loop: 'lidar' -> 'camera' -> 'lidar'"
+LOOP = "tf edges form a loop: 'camera' -> 'lidar' -> 'camera'"
 TWO_PARENTS = "frame 'camera' has 2 parents ('base', 'lidar'); tf allows one"
 SHORT = "PointCloud2 data has 24000 bytes, 48000 needed"
 STEP = "lies past the end of a 8-byte point (point_step smaller than its fields)"
@@ -717,6 +717,8 @@ MATRIX: list[MatrixCase] = [
     MatrixCase("tf_odometry_jumps_1000_m", lambda tmp: good(tmp, frames=4, odometry=bi.odometry_jump(2, 1000.0)),
                all_commands(Expect(0), Expect(0), Expect(0, "implausible odometry"),
                             Expect(0, "implausible odometry"))),
+    MatrixCase("stamps_all_equal", lambda tmp: good(tmp, stamp_ns=lambda i: bi.START_NS),
+               all_commands(Expect(0), Expect(0), Expect(0), Expect(0))),
     # option values (item 3): usage errors exit 2 naming the flag; content stays exit 1
     MatrixCase("usage_workers_negative", good, same_for_all(Expect(2, "--workers -1: must be >= 0")),
                extra=("--workers", "-1")),
@@ -771,3 +773,33 @@ def test_every_command_on_bad_log(case: MatrixCase, command: str, tmp_path: Path
         error = outcome.stderr.splitlines()[0]
         assert str(tmp_path / f"out_{command}") in error and ".tmp" not in error, error
         assert outcome.seconds < 1.0, "the output folder is checked before any work"
+
+
+def test_tf_structure_problems_name_the_frames() -> None:
+    """A tree has none; a frame with two parents and a 3-frame loop are each named once."""
+    from fleetcal.pipeline.transforms import TransformTree
+    from fleetcal.readers.frames import tf_structure_problems
+
+    tree = TransformTree()
+    for parent, child in [("map", "odom"), ("odom", "base"), ("base", "lidar"), ("base", "camera")]:
+        tree.add(parent, child, np.eye(4), 0, static=True)
+    assert tf_structure_problems(tree) == []
+    tree.add("lidar", "camera", np.eye(4), 0, static=True)
+    tree.add("a", "b", np.eye(4), 0, static=True)
+    tree.add("b", "c", np.eye(4), 0, static=True)
+    tree.add("c", "a", np.eye(4), 0, static=True)
+    assert tf_structure_problems(tree) == [
+        "frame 'camera' has 2 parents ('base', 'lidar'); tf allows one",
+        "tf edges form a loop: 'a' -> 'b' -> 'c' -> 'a'",
+    ]
+
+
+def test_map_with_local_workers_writes_nothing_but_its_lines_to_stderr(tmp_path: Path) -> None:
+    """``fleetcal map`` with a local dask cluster (2 workers) on a log whose stamps are all equal: stderr
+    holds only fleetcal's own lines (no distributed heartbeat errors while the cluster shuts down)."""
+    log = good(tmp_path, stamp_ns=lambda i: bi.START_NS)
+    proc = run_subprocess(["map", str(log), "--workers", "2", "-q", "--out", str(tmp_path / "out")])
+    assert proc.returncode == 0, proc.stderr
+    stray = [line for line in proc.stderr.splitlines() if line.strip() and not line.startswith(ALLOWED_STDERR)]
+    assert stray == [], proc.stderr
+    assert "distributed" not in proc.stderr

@@ -59,7 +59,8 @@ class MappingOutcome:
 
     def speeds_m_s(self) -> list[float]:
         """Speed of each scan's motion from the previous one, m/s (first scan: 0). Scans stamped at the
-        previous one's time are given the log's median scan interval (inf when there is none)."""
+        previous one's time are given the log's median scan interval; NaN (not judged) where every scan
+        has the same stamp."""
         dts = [(b.stamp_ns - a.stamp_ns) * 1e-9 for a, b in zip(self.steps, self.steps[1:], strict=False)]
         positive = [dt for dt in dts if dt > 0]
         typical = float(np.median(positive)) if positive else 0.0
@@ -67,7 +68,7 @@ class MappingOutcome:
         for dt, step in zip(dts, self.steps[1:], strict=True):
             dist = float(np.linalg.norm(step.T_prev_curr[:3, 3]))
             dt = dt if dt > 0 else typical
-            speeds.append(dist / dt if dt > 0 else (0.0 if dist == 0 else float("inf")))
+            speeds.append(dist / dt if dt > 0 else float("nan"))
         return speeds
 
     def implausible_scans(self) -> list[int]:
