@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import tempfile
 from collections.abc import Iterable
@@ -97,10 +96,7 @@ def prepare_out_dir(out: str | None, outputs: Iterable[str] = ("config.toml",)) 
         with tempfile.NamedTemporaryFile(dir=path, prefix=".fleetcal-write-check."):
             pass
     except OSError as err:
-        reason = err.strerror or str(err)
-        if not os.access(path, os.W_OK):
-            reason = "the folder is not writable"
-        raise InputError(f"cannot write in output folder {out}: {reason}") from err
+        raise InputError(f"cannot write in output folder {out}: {err.strerror or err}") from err
     for name in outputs:
         if (path / name).is_dir():
             raise InputError(f"cannot write {name} in output folder {out}: {path / name} is a folder")
