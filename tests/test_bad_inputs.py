@@ -278,6 +278,12 @@ CASES: list[Case] = [  # the corpus table: one case per line, long lines kept fo
             "4",
             "--particles",
             "20",
+            "--repeats",
+            "1",
+            "--confirm-repeats",
+            "0",
+            "--translation",
+            "hold",
             "--no-report",
             "-q",
             "--out",
@@ -772,6 +778,11 @@ def test_every_command_on_bad_log(case: MatrixCase, command: str, tmp_path: Path
     if case.out is not None:
         error = outcome.stderr.splitlines()[0]
         assert str(tmp_path / f"out_{command}") in error and ".tmp" not in error, error
+    if command == "process" and outcome.exit_code == 0:
+        result = json.loads((tmp_path / "out_process" / "result.json").read_text())
+        jumped = [2] if case.name == "tf_odometry_jumps_1000_m" else []
+        assert result["mapping"]["implausible_motion"] == jumped
+        assert len([w for w in result["warnings"] if "implausible odometry" in w]) == len(jumped)
 
 
 def test_tf_structure_problems_name_the_frames() -> None:
