@@ -45,6 +45,8 @@ __all__ = [
 ]
 
 ENV_PREFIX = "FLEETCAL_"
+COMMAND_LINE = "command line"
+"""The source named for ``load_config``'s ``overrides`` in its errors."""
 
 
 @dataclass
@@ -325,7 +327,7 @@ def load_config(
         section, sep, key = dotted.partition(".")
         if not sep:
             raise ConfigError(f"override {dotted!r} must be 'section.key'")
-        _set(config, section, key, value, source="command line", from_text=False)
+        _set(config, section, key, value, source=COMMAND_LINE, from_text=False)
     config.validate()
     return config
 
@@ -410,7 +412,7 @@ def _set(config: Config, section: str, key: str, value: Any, *, source: str, fro
         converted = _convert(value, hints[key], from_text)
     except (TypeError, ValueError) as err:
         message = f"{source}: bad value {value!r} for {section}.{key}: {err}"
-        raise ConfigError(message, f"{section}.{key}", str(err)) from err
+        raise ConfigError(message, f"{section}.{key}", str(err), source) from err
     setattr(obj, key, converted)
 
 

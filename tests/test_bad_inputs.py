@@ -730,6 +730,9 @@ MATRIX: list[MatrixCase] = [
                extra=("--workers", "-1")),
     MatrixCase("usage_config_file_value", config_file("[io]\nmax_range_m = -5\n"),
                same_for_all(Expect(2, "bad value for io.max_range_m: must be > 0")), extra=("--config", "bad.toml")),
+    MatrixCase("usage_config_file_type_beside_a_good_flag", config_file('[calibration]\nframes = "x"\n'),
+               {c: Expect(2, "bad.toml: bad value 'x' for calibration.frames: expected an integer, got str")
+                for c in ("calibrate", "process")}, extra=("--config", "bad.toml", "--frames", "5")),
     MatrixCase("usage_frames_negative", good, {"calibrate": Expect(2, "--frames -1: must be >= 1"),
                                                "process": Expect(2, "--frames -1: must be >= 1")},
                extra=("--frames", "-1")),

@@ -9,7 +9,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-from fleetcal.pipeline.config import Config, load_config, write_toml
+from fleetcal.pipeline.config import COMMAND_LINE, Config, load_config, write_toml
 from fleetcal.pipeline.errors import ConfigError, InputError, UsageError
 from fleetcal.readers.base import LogReader
 from fleetcal.readers.open import open_log, truncation_of
@@ -56,7 +56,8 @@ def config_from_args(args: argparse.Namespace, overrides: dict[str, Any]) -> Con
     try:
         return load_config(getattr(args, "config", None), overrides=given)
     except ConfigError as err:
-        value = given.get(err.key) if err.key else None
+        from_flag = err.source in (None, COMMAND_LINE)
+        value = given.get(err.key) if err.key and from_flag else None
         if value is None:
             raise UsageError(str(err)) from err
         raise UsageError(f"{flag_of(str(err.key))} {value}: {err.reason}") from err
