@@ -334,7 +334,8 @@ def _problems(stats: dict[str, _TopicStats], scans: dict[str, LidarSummary], tf:
     bad_tf = tf.bad_entries_text()
     if bad_tf:
         problems.append(f"tf: {bad_tf} (not used by the other commands)")
-    problems.extend(f"tf: {line}: calibrate and process refuse it, map ignores the tf" for line in tf.structure)
+    problems.extend(f"tf: {line}: calibrate then needs --initial, process fails, map ignores the tf"
+                    for line in tf.structure)
     return problems
 
 
