@@ -834,3 +834,15 @@ def test_unwritable_out_is_found_before_any_work(command: str, tmp_path: Path) -
     message = f"cannot write in output folder {out}: Operation not permitted"
     check(outcome, Case("unwritable", lambda tmp: [], 1, message))
     assert list(out.iterdir()) == []
+
+
+def test_write_toml_error_names_the_final_path(tmp_path: Path) -> None:
+    """``config.toml`` that is a folder: the OSError names it, not the temporary file written beside it."""
+    from fleetcal.pipeline.config import Config, write_toml
+
+    target = tmp_path / "config.toml"
+    target.mkdir()
+    with pytest.raises(OSError) as raised:
+        write_toml(Config(), target)
+    assert raised.value.filename == str(target)
+    assert [p.name for p in tmp_path.iterdir()] == ["config.toml"]
