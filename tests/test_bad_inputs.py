@@ -739,6 +739,10 @@ MATRIX: list[MatrixCase] = [
     MatrixCase("usage_search_deg_nan", good, {"calibrate": Expect(2, "--search-deg nan: expected a finite number")},
                extra=("--search-deg", "nan")),
     MatrixCase("usage_voxel_zero", good, {"map": Expect(2, "--voxel 0.0: must be > 0")}, extra=("--voxel", "0")),
+    MatrixCase("camera_without_camera_info", lambda tmp: good(tmp, with_info=False), all_commands(
+        Expect(0, "/camera/image_raw: image topic without a CameraInfo topic beside it"),
+        Expect(1, "no CameraInfo for the image topics (/camera/image_raw)"), Expect(0),
+        Expect(1, "no CameraInfo for the image topics (/camera/image_raw)"))),
     MatrixCase("no_lidar_topic", no_lidar, all_commands(
         Expect(0), Expect(1, "no PointCloud2 topic"), Expect(1, "no PointCloud2 topic"),
         Expect(1, "no PointCloud2 topic"))),

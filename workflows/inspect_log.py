@@ -159,7 +159,8 @@ class InspectReport:
         lidar_scans: lidar topic -> its first scan's ``LidarSummary`` (where it decodes).
         problems: what ``calibrate``, ``map`` and ``process`` will meet, one line each: messages that
             cannot be decoded (per topic: how many, the first reason), bad tf entries, tf edges that
-            are not a tree, a first scan with no valid point or with points beyond the range limit.
+            are not a tree, a first scan with no valid point or with points beyond the range limit, an
+            image topic without CameraInfo.
     """
 
     paths: list[str]
@@ -313,7 +314,10 @@ def inspect_log(reader: LogReader, max_range_m: float = MAX_RANGE_M) -> InspectR
         truncation=truncation_of(reader),
         message_count=total,
         lidar_scans=scans,
-        problems=_problems(stats, scans, tf),
+        problems=_problems(stats, scans, tf) + [
+            f"{name}: image topic without a CameraInfo topic beside it: calibrate and process cannot use it"
+            for name in names if types[name] in IMAGE_TYPES and name not in camera_info and stats[name].count
+        ],
     )
 
 
