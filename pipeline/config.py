@@ -45,6 +45,8 @@ __all__ = [
 ]
 
 ENV_PREFIX = "FLEETCAL_"
+COMMAND_LINE = "command line"
+"""The source named for ``load_config``'s ``overrides`` in its errors."""
 
 
 @dataclass
@@ -56,14 +58,20 @@ class IoConfig:
         allow_truncated: read what is left of a truncated log instead of failing.
         rectified_topics: image topics whose images are rectified although their names do not say so
             (ROS names them ``image_rect``...): projected with the CameraInfo's P and R, no distortion.
+        max_range_m: lidar points farther than this from the sensor are dropped at decode (counted in
+            ``LidarFrame.dropped_points``), metres. The default, 1000 m, is above the longest range any
+            automotive or survey lidar on fleet robots reports (600 m and less), so it removes only
+            corrupt values (1e30, denormal garbage) that would otherwise reach voxel grids and KD-trees.
     """
 
     pairing_tolerance_ns: int = 50_000_000
     allow_truncated: bool = False
     rectified_topics: list[str] = field(default_factory=list)
+    max_range_m: float = 1000.0
 
     def validate(self) -> None:
         _require(self.pairing_tolerance_ns >= 0, "io.pairing_tolerance_ns", "must be >= 0")
+        _require(self.max_range_m > 0, "io.max_range_m", "must be > 0")
 
 
 @dataclass
@@ -109,8 +117,9 @@ def feature_names(spec: str) -> list[str]:
     """
     names = [n.strip() for n in str(spec).split("+")]
     if any(n not in LIDAR_FEATURES for n in names) or len(set(names)) != len(names):
-        raise ConfigError(f"bad value for calibration.feature: unknown or repeated lidar feature in {spec!r}; "
-                          f"expected one or several of {', '.join(LIDAR_FEATURES)} joined by '+'")
+        reason = (f"unknown or repeated lidar feature in {spec!r}; expected one or several of "
+                  f"{', '.join(LIDAR_FEATURES)} joined by '+'")
+        raise ConfigError(f"bad value for calibration.feature: {reason}", "calibration.feature", reason)
     return names
 
 
@@ -240,6 +249,9 @@ class MappingConfig:
             for clouds already de-skewed by their driver that still carry firing times.
         first_motion_max_m: without /tf odometry, the largest motion between the first two scans looked
             for (their registration's first, coarse pass), metres (``run_odometry``); 0: no coarse pass.
+        max_speed_m_s: odometry faster than this between two scans is implausible: the scan is warned
+            about and counted (``implausible_motion`` in the summary), m/s. The default, 70 m/s (252 km/h),
+            is above the top speed of the road vehicles that carry lidars.
     """
 
     channels: Literal["none", "intensity", "color", "combined"] = "intensity"
@@ -252,6 +264,7 @@ class MappingConfig:
     use_tf_odometry: bool = True
     deskew: bool = True
     first_motion_max_m: float = 4.0
+    max_speed_m_s: float = 70.0
 
     def validate(self) -> None:
         _require(self.voxel_m > 0, "mapping.voxel_m", "must be > 0")
@@ -260,6 +273,7 @@ class MappingConfig:
         _require(self.max_iterations >= 1, "mapping.max_iterations", "must be >= 1")
         _require(self.map_voxel_m > 0, "mapping.map_voxel_m", "must be > 0")
         _require(self.first_motion_max_m >= 0, "mapping.first_motion_max_m", "must be >= 0")
+        _require(self.max_speed_m_s > 0, "mapping.max_speed_m_s", "must be > 0")
 
 
 @dataclass
@@ -313,7 +327,7 @@ def load_config(
         section, sep, key = dotted.partition(".")
         if not sep:
             raise ConfigError(f"override {dotted!r} must be 'section.key'")
-        _set(config, section, key, value, source="command line", from_text=False)
+        _set(config, section, key, value, source=COMMAND_LINE, from_text=False)
     config.validate()
     return config
 
@@ -354,12 +368,18 @@ def to_toml(config: Config) -> str:
 
 
 def write_toml(config: Config, path: str | os.PathLike[str]) -> Path:
-    """Write ``to_toml(config)`` to ``path`` atomically (temporary file in the folder, then rename)."""
+    """Write ``to_toml(config)`` to ``path`` atomically (temporary file in the folder, then rename).
+
+    Raises:
+        OSError: the file cannot be written; its ``filename`` is ``path`` (not the temporary file's).
+    """
     final = Path(path)
     tmp = final.with_name(f".{final.name}.{os.getpid()}.tmp")
     try:
         tmp.write_text(to_toml(config), encoding="utf-8")
         os.replace(tmp, final)
+    except OSError as err:
+        raise OSError(err.errno, err.strerror or str(err), str(final)) from err
     finally:
         if tmp.exists():
             tmp.unlink()
@@ -391,7 +411,8 @@ def _set(config: Config, section: str, key: str, value: Any, *, source: str, fro
     try:
         converted = _convert(value, hints[key], from_text)
     except (TypeError, ValueError) as err:
-        raise ConfigError(f"{source}: bad value {value!r} for {section}.{key}: {err}") from err
+        message = f"{source}: bad value {value!r} for {section}.{key}: {err}"
+        raise ConfigError(message, f"{section}.{key}", str(err), source) from err
     setattr(obj, key, converted)
 
 
@@ -475,4 +496,4 @@ def _toml_value(value: Any) -> str:
 
 def _require(ok: bool, key: str, message: str) -> None:
     if not ok:
-        raise ConfigError(f"bad value for {key}: {message}")
+        raise ConfigError(f"bad value for {key}: {message}", key, message)

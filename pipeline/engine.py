@@ -114,7 +114,9 @@ def dask_client(scheduler: str | None, n_workers: int, memory_limit: str | float
     or, without one, of a new ``LocalCluster`` of ``n_workers`` single-threaded worker processes on this
     machine. The local cluster has no dashboard, and its scheduler's HTTP server (health and metrics)
     listens on a free localhost port, not on 8787 of every interface: jobs running side by side neither
-    clash ("port 8787 is already in use") nor expose a server.
+    clash ("port 8787 is already in use") nor expose a server. Its workers log only CRITICAL records: a
+    worker that fails a task reports it through the task's exception, and the ERROR records distributed
+    writes while closing (a heartbeat in flight when the worker's connection pool closes) are noise.
 
     Raises:
         ConfigError: the scheduler cannot be reached.
@@ -133,7 +135,7 @@ def dask_client(scheduler: str | None, n_workers: int, memory_limit: str | float
         host="127.0.0.1",
         dashboard_address=None,
         scheduler_kwargs={"dashboard": False, "dashboard_address": "127.0.0.1:0"},
-        silence_logs=logging.ERROR,
+        silence_logs=logging.CRITICAL,
         memory_limit=memory_limit,
     )
     return Client(cluster), cluster

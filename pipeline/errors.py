@@ -37,7 +37,22 @@ class TransformError(InputError):
 
 
 class ConfigError(FleetcalError):
-    """A configuration value is invalid."""
+    """A configuration value is invalid.
+
+    Attributes:
+        key: the ``section.key`` whose value was rejected (None when the error is not about one key).
+        reason: why the value was rejected, without the key (e.g. ``must be >= 1``).
+        source: where the rejected value came from (a file, ``command line``...); None for a range check
+            of the effective value (after every source was applied).
+    """
+
+    def __init__(
+        self, message: str, key: str | None = None, reason: str | None = None, source: str | None = None
+    ) -> None:
+        super().__init__(message)
+        self.key = key
+        self.reason = reason or message
+        self.source = source
 
 
 class ProcessingError(FleetcalError):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import re
 from collections.abc import Collection, Iterable, Iterator, Mapping
+from dataclasses import dataclass, field
 from typing import Any
 
 from fleetcal.pipeline.camera_model import CameraModel
@@ -21,6 +22,7 @@ from fleetcal.readers.decode import (
     rectification_rotation,
     stereo_baseline_m,
 )
+from fleetcal.readers.decode.pointcloud2 import MAX_RANGE_M
 from fleetcal.readers.decode.tf import decode_transform
 
 log = logging.getLogger(__name__)
@@ -37,9 +39,11 @@ def require_topic(reader: LogReader, topic: str, expected: tuple[str, ...]) -> s
 
 
 def iter_lidar_frames(
-    reader: LogReader, topic: str, start_ns: int | None = None, end_ns: int | None = None
+    reader: LogReader, topic: str, start_ns: int | None = None, end_ns: int | None = None,
+    max_range_m: float = MAX_RANGE_M,
 ) -> Iterator[LidarFrame]:
-    """Decoded PointCloud2 frames of ``topic`` with ``start_ns <= log time < end_ns``, in log order.
+    """Decoded PointCloud2 frames of ``topic`` with ``start_ns <= log time < end_ns``, in log order; points
+    beyond ``max_range_m`` (metres) dropped (``decode_pointcloud2``).
 
     Raises:
         InputError: the topic is missing or not a PointCloud2 topic.
@@ -47,7 +51,7 @@ def iter_lidar_frames(
     """
     require_topic(reader, topic, (POINTCLOUD2,))
     for raw in reader.messages(topics=[topic], start_ns=start_ns, end_ns=end_ns):
-        yield decode_pointcloud2(reader.deserialize(raw), topic, raw.log_time_ns)
+        yield decode_pointcloud2(reader.deserialize(raw), topic, raw.log_time_ns, max_range_m)
 
 
 def camera_info_topic_for(image_topic: str, topics: Mapping[str, TopicInfo] | Iterable[str]) -> str | None:
@@ -157,34 +161,118 @@ def iter_camera_frames(
         yield frame
 
 
+@dataclass
+class TfCheck:
+    """What ``check_tf`` found in a log's ``/tf`` and ``/tf_static``.
+
+    Attributes:
+        tree: the edges that decoded (bad entries left out).
+        bad_entries: entries skipped, per topic (NaN or infinite values, a quaternion that is not a
+            rotation, a frame to itself, an empty frame name, an undecodable message).
+        first_bad: the first bad entry's reason, for messages.
+        structure: why the edges do not form a tree (a frame with two parents, a loop), one line each.
+    """
+
+    tree: TransformTree
+    bad_entries: dict[str, int] = field(default_factory=dict)
+    first_bad: str | None = None
+    structure: list[str] = field(default_factory=list)
+
+    def bad_entries_text(self) -> str | None:
+        """One line about the skipped entries, or None when there is none."""
+        if not self.bad_entries:
+            return None
+        counts = ", ".join(f"{n} on {topic}" for topic, n in sorted(self.bad_entries.items()))
+        return f"skipped {sum(self.bad_entries.values())} bad tf entries ({counts}); first: {self.first_bad}"
+
+
+def tf_structure_problems(tree: TransformTree) -> list[str]:
+    """Why ``tree``'s edges are not a tf tree, one line each: a frame with more than one parent (tf gives
+    each frame one), and loops of parent -> child edges (``velo -> camera`` and ``camera -> velo``)."""
+    parents: dict[str, set[str]] = {}
+    for parent, child, _ in tree.edges():
+        parents.setdefault(child, set()).add(parent)
+    problems = [
+        f"frame {child!r} has {len(ps)} parents ({', '.join(repr(p) for p in sorted(ps))}); tf allows one"
+        for child, ps in sorted(parents.items())
+        if len(ps) > 1
+    ]
+    reported: set[frozenset[str]] = set()
+    for start in sorted(parents):
+        loop = _loop_through(start, parents)
+        if loop and frozenset(loop) not in reported:
+            reported.add(frozenset(loop))
+            problems.append("tf edges form a loop: " + " -> ".join(repr(f) for f in [*loop, loop[0]]))
+    return problems
+
+
+def _loop_through(start: str, parents: Mapping[str, set[str]]) -> list[str] | None:
+    """Frames of a parent -> child loop through ``start`` (parent first, from the smallest name), or None
+    (depth-first search)."""
+    stack: list[tuple[str, list[str]]] = [(start, [start])]
+    seen: set[str] = set()
+    while stack:
+        node, path = stack.pop()
+        for parent in sorted(parents.get(node, ())):
+            if parent == start:
+                loop = path[::-1]
+                first = loop.index(min(loop))
+                return loop[first:] + loop[:first]
+            if parent not in seen:
+                seen.add(parent)
+                stack.append((parent, [*path, parent]))
+    return None
+
+
+def add_tf_message(check: TfCheck, topic: str, transforms: Iterable[Any], static: bool) -> None:
+    """Add a TFMessage's transforms to ``check.tree``; bad entries are counted in ``check``."""
+    for stamped in transforms:
+        try:
+            stamp_ns, parent, child, T_parent_child = decode_transform(stamped)
+            check.tree.add(parent, child, T_parent_child, stamp_ns, static=static)
+        except TransformError as err:
+            check.bad_entries[topic] = check.bad_entries.get(topic, 0) + 1
+            check.first_bad = check.first_bad or f"{err} (on {topic})"
+
+
+def is_static_tf_topic(topic: str) -> bool:
+    """True for a ``tf_static`` topic (``/tf_static``, ``/robot/tf_static``)."""
+    return topic.rstrip("/").endswith("tf_static")
+
+
+def check_tf(reader: LogReader, tolerance_ns: int = 100_000_000) -> TfCheck:
+    """The log's ``/tf`` (dynamic) and ``/tf_static`` (static) edges as a TransformTree, with the bad
+    entries skipped and counted and the problems of the tree's shape (``tf_structure_problems``)."""
+    check = TfCheck(TransformTree(tolerance_ns=tolerance_ns))
+    topics = [name for name, info in reader.topics.items() if info.msgtype == TF_MESSAGE]
+    if not topics:
+        return check
+    for raw in reader.messages(topics=topics):
+        try:
+            transforms = reader.deserialize(raw).transforms
+        except DecodeError as err:
+            check.bad_entries[raw.topic] = check.bad_entries.get(raw.topic, 0) + 1
+            check.first_bad = check.first_bad or str(err)
+            continue
+        add_tf_message(check, raw.topic, transforms, is_static_tf_topic(raw.topic))
+    check.structure = tf_structure_problems(check.tree)
+    return check
+
+
 def load_tf_tree(reader: LogReader, tolerance_ns: int = 100_000_000) -> TransformTree:
     """TransformTree of the log's ``/tf`` (dynamic) and ``/tf_static`` (static) topics.
 
     Bad entries (NaN, not a rotation, self-loops, undecodable messages) are skipped, counted and
     reported in one logged warning.
+
+    Raises:
+        TransformError: the edges are not a tree (a frame with two parents, a loop): which of two
+            disagreeing transforms is meant cannot be known, so none is used; the message names the frames.
     """
-    tree = TransformTree(tolerance_ns=tolerance_ns)
-    topics = [name for name, info in reader.topics.items() if info.msgtype == TF_MESSAGE]
-    static_topics = {name for name in topics if name.rstrip("/").endswith("tf_static")}
-    if not topics:
-        return tree
-    skipped: dict[str, int] = {}
-    first_error: str | None = None
-    for raw in reader.messages(topics=topics):
-        try:
-            transforms = reader.deserialize(raw).transforms
-        except DecodeError as err:
-            skipped[raw.topic] = skipped.get(raw.topic, 0) + 1
-            first_error = first_error or str(err)
-            continue
-        for stamped in transforms:
-            try:
-                stamp_ns, parent, child, T_parent_child = decode_transform(stamped)
-                tree.add(parent, child, T_parent_child, stamp_ns, static=raw.topic in static_topics)
-            except TransformError as err:
-                skipped[raw.topic] = skipped.get(raw.topic, 0) + 1
-                first_error = first_error or str(err)
-    if skipped:
-        counts = ", ".join(f"{n} on {topic}" for topic, n in sorted(skipped.items()))
-        log.warning("skipped %s bad tf entries (%s); first: %s", sum(skipped.values()), counts, first_error)
-    return tree
+    check = check_tf(reader, tolerance_ns)
+    bad = check.bad_entries_text()
+    if bad:
+        log.warning("%s", bad)
+    if check.structure:
+        raise TransformError(f"the log's tf is not a tree: {'; '.join(check.structure)}")
+    return check.tree

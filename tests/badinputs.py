@@ -11,6 +11,7 @@ camera (frame ``camera``, optical: z forward) mounted at ``T_CAMERA_LIDAR``; ``/
 
 from __future__ import annotations
 
+import copy
 import shutil
 import struct
 from collections.abc import Callable
@@ -31,6 +32,7 @@ LIDAR_TOPIC = "/lidar/points"
 CAMERA_TOPIC = "/camera/image_raw"
 INFO_TOPIC = "/camera/camera_info"
 TF_STATIC = "/tf_static"
+TF = "/tf"
 PC2 = "sensor_msgs/msg/PointCloud2"
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
@@ -97,6 +99,10 @@ class SceneSpec:
     mutate_tf: Mutator | None = None
     log_time_ns: Callable[[int], int] | None = None
     """frame index -> log time (default: increasing by ``STEP_NS``)."""
+    odometry: Callable[[int], NDArray[np.float64]] | None = None
+    """frame index -> ``T_odom_lidar`` written on ``/tf`` (``odom -> lidar``) at the scan's stamp (None: no /tf)."""
+    stamp_ns: Callable[[int], int] | None = None
+    """frame index -> header stamp of the scan and its image (default: increasing by ``STEP_NS``)."""
     chunk_size: int = 4 * 1024 * 1024
     compression: str | None = "zstd"
 
@@ -116,8 +122,11 @@ def write_scene(path: Path, spec: SceneSpec | None = None) -> Path:
             tf = ros_messages.tf_message([(START_NS, "lidar", "camera", invert(T_CAMERA_LIDAR))], profile)
             writer.write(TF_STATIC, TFMSG, START_NS, mutate_tf(tf, 0))
         for i in range(spec.frames):
-            stamp = START_NS + i * STEP_NS
-            log_time = spec.log_time_ns(i) if spec.log_time_ns else stamp + 1_000_000
+            stamp = spec.stamp_ns(i) if spec.stamp_ns else START_NS + i * STEP_NS
+            log_time = spec.log_time_ns(i) if spec.log_time_ns else START_NS + i * STEP_NS + 1_000_000
+            if spec.odometry is not None:
+                odom = ros_messages.tf_message([(stamp, "odom", "lidar", spec.odometry(i))], profile)
+                writer.write(TF, TFMSG, log_time - 1000, odom)
             points, intensity = scene_points(rng, spec.n_points)
             cloud = ros_messages.pointcloud2(stamp, "lidar", points, {"intensity": intensity}, profile=profile)
             writer.write(LIDAR_TOPIC, PC2, log_time, mutate_cloud(cloud, i))
@@ -186,6 +195,38 @@ def cloud_of(points_fn: Callable[[int], NDArray[np.float32]], profile: str = "ro
         return ros_messages.pointcloud2(stamp, str(msg.header.frame_id), points_fn(i), profile=profile)  # type: ignore[arg-type]
 
     return mutate
+
+
+def tf_translation(x: float, y: float, z: float) -> Mutator:
+    """Mutator writing the translation (x, y, z) into every transform of a TFMessage."""
+
+    def mutate(msg: Any, i: int) -> Any:
+        for stamped in msg.transforms:
+            t = stamped.transform.translation
+            t.x, t.y, t.z = x, y, z
+        return msg
+
+    return mutate
+
+
+def tf_extra_edge(parent: str, child: str, x_m: float = 0.0) -> Mutator:
+    """Mutator adding a copy of the first transform as ``parent -> child`` (translation x = ``x_m``):
+    with ``camera -> lidar`` beside ``lidar -> camera`` a loop, with ``base -> camera`` a second parent."""
+
+    def mutate(msg: Any, i: int) -> Any:
+        extra = copy.deepcopy(msg.transforms[0])
+        extra.header.frame_id = parent
+        extra.child_frame_id = child
+        extra.transform.translation.x = x_m
+        msg.transforms = [*msg.transforms, extra]
+        return msg
+
+    return mutate
+
+
+def odometry_jump(at_index: int, jump_m: float, step_m: float = 0.5) -> Callable[[int], NDArray[np.float64]]:
+    """``T_odom_lidar`` moving ``step_m`` forward per scan, plus ``jump_m`` along y from scan ``at_index`` on."""
+    return lambda i: make_T(np.eye(3), [step_m * i, jump_m if i >= at_index else 0.0, 0.0])
 
 
 def tf_rotation(x: float, y: float, z: float, w: float) -> Mutator:

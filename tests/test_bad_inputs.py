@@ -16,6 +16,7 @@ import sqlite3
 import subprocess
 import sys
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -277,6 +278,12 @@ CASES: list[Case] = [  # the corpus table: one case per line, long lines kept fo
             "4",
             "--particles",
             "20",
+            "--repeats",
+            "1",
+            "--confirm-repeats",
+            "0",
+            "--translation",
+            "hold",
             "--no-report",
             "-q",
             "--out",
@@ -305,7 +312,12 @@ CASES: list[Case] = [  # the corpus table: one case per line, long lines kept fo
         1,
         "no initial guess: the log's tf has no path from 'lidar' to 'camera'",
     ),
-    Case("tf_duplicate_child_frame", calibrate(lambda tmp: good(tmp, mutate_tf=duplicate_frame_tf)), 0, ""),
+    Case(
+        "tf_duplicate_child_frame",
+        calibrate(lambda tmp: good(tmp, mutate_tf=duplicate_frame_tf)),
+        1,
+        "frame 'camera' has 2 parents ('base', 'lidar'); tf allows one",
+    ),
     Case("timestamps_backwards_inspect", inspect(lambda tmp: good(tmp, log_time_ns=backwards)), 0, ""),
     Case("timestamps_backwards_map", mapping(lambda tmp: good(tmp, log_time_ns=backwards)), 0, ""),
     # calibrate-specific
@@ -372,14 +384,19 @@ def run_cli(argv: list[str]) -> Outcome:
     root.addHandler(handler)
     start = time.perf_counter()
     try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), warnings.catch_warnings(
+            record=True
+        ) as caught:
+            warnings.simplefilter("always")
             try:
                 code = main(argv)
             except SystemExit as exc:
                 code = int(exc.code or 0)
     finally:
         root.removeHandler(handler)
-    return Outcome(code, out.getvalue(), err.getvalue(), time.perf_counter() - start)
+    # Python warnings (numpy RuntimeWarning...) would reach a user's stderr: they count as stray lines.
+    stray = "".join(f"{w.category.__name__}: {w.message} ({w.filename}:{w.lineno})\n" for w in caught)
+    return Outcome(code, out.getvalue(), err.getvalue() + stray, time.perf_counter() - start)
 
 
 ALLOWED_STDERR = ("error:", "warning:", "WARNING ", "wrote ")
@@ -539,3 +556,297 @@ def test_ten_million_points_in_one_message_memory_bounded(tmp_path: Path) -> Non
     print(f"10M points x 2 scans: fleetcal map peak RSS {map_peak_mb:.0f} MiB, {map_wall_s:.1f} s")
     assert map_peak_mb < 1536
     assert map_wall_s < 90
+
+
+# --- every command on each bad log ---------------------------------------------------------------
+
+COMMANDS = ("inspect", "calibrate", "map", "process")
+FAST_TOML = """[calibration]
+frames = 1
+particles = 20
+iterations = 20
+repeats = 1
+confirm_repeats = 0
+translation = "hold"
+
+[engine]
+workers = 0
+"""
+"""The smallest calibration (one frame, 20 particles, translation held) and the in-process engine."""
+
+
+@dataclass(frozen=True)
+class Expect:
+    """What one command must answer: its exit code and a fragment of its one ``error:`` line (exit != 0)
+    or of a ``warning:``/``WARNING`` line (exit 0; "" = no requirement)."""
+
+    exit_code: int
+    message: str = ""
+
+
+@dataclass(frozen=True)
+class MatrixCase:
+    """A bad log (``make(tmp) -> path``) and what each command answers on it.
+
+    ``extra``: arguments added for every command (usage cases); ``out``: ``(tmp, command) -> --out``
+    (default ``tmp/out_<command>``), for output-folder cases.
+    """
+
+    name: str
+    make: Callable[[Path], Path]
+    expect: dict[str, Expect]
+    extra: tuple[str, ...] = ()
+    out: Callable[[Path, str], Path] | None = None
+
+
+def all_commands(inspect: Expect, calibrate: Expect, map_: Expect, process: Expect) -> dict[str, Expect]:
+    return {"inspect": inspect, "calibrate": calibrate, "map": map_, "process": process}
+
+
+def same_for_all(expect: Expect) -> dict[str, Expect]:
+    return dict.fromkeys(COMMANDS, expect)
+
+
+def far_points(i: int) -> np.ndarray:
+    """A cloud at 1e30 m (corrupt coordinates): 20000 finite points, all far beyond any lidar's range."""
+    return np.full((20_000, 3), 1e30, dtype=np.float32)
+
+
+def tenth_of_points_far(msg: Any, i: int) -> Any:
+    """Every tenth point of an x, y, z, intensity float32 cloud moved to 1e30 m (its intensity kept)."""
+    words = np.asarray(msg.data, dtype=np.uint8).copy().view(np.float32).reshape(-1, msg.point_step // 4)
+    words[::10, :3] = 1e30
+    msg.data = words.reshape(-1).view(np.uint8)
+    return msg
+
+
+def rename_x_field(msg: Any, i: int) -> Any:
+    """The PointField ``x`` renamed ``a``: the cloud has no x."""
+    for field in msg.fields:
+        if field.name == "x":
+            field.name = "a"
+    return msg
+
+
+def huge_image(msg: Any, i: int) -> Any:
+    """An Image claiming 100000 x 100000 mono8 pixels over 64 bytes."""
+    msg.height, msg.width, msg.step = 100_000, 100_000, 100_000
+    msg.data = np.zeros(64, np.uint8)
+    return msg
+
+
+def no_lidar(tmp: Path) -> Path:
+    """A log with a camera and tf but no PointCloud2 topic."""
+    from fleetcal.stages.sinks import ros_messages
+    from fleetcal.stages.sinks.log_writer import LogWriter
+
+    path = tmp / "camera_only.mcap"
+    image = np.full((bi.HEIGHT, bi.WIDTH), 90, np.uint8)
+    with LogWriter(path, "mcap") as writer:
+        for i in range(3):
+            stamp = bi.START_NS + i * bi.STEP_NS
+            writer.write(bi.CAMERA_TOPIC, bi.IMAGE, stamp, ros_messages.image(stamp, "camera", image, "mono8"))
+            writer.write(bi.INFO_TOPIC, bi.INFO, stamp, ros_messages.camera_info(stamp, "camera", bi.CAMERA))
+    return path
+
+
+def config_file(text: str) -> Callable[[Path], Path]:
+    def make(tmp: Path) -> Path:
+        (tmp / "bad.toml").write_text(text)
+        return good(tmp)
+
+    return make
+
+
+def config_toml_is_a_folder(tmp: Path, command: str) -> Path:
+    out = tmp / f"out_{command}"
+    (out / "config.toml").mkdir(parents=True)
+    return out
+
+
+def out_is_a_file(tmp: Path, command: str) -> Path:
+    out = tmp / f"out_{command}"
+    out.write_text("not a folder")
+    return out
+
+
+EMPTY_IMAGE = "image size 0x0 is empty"
+HUGE = "image data has 64 bytes, 10000000000 needed for 100000x100000 mono8"
+LOOP = "tf edges form a loop: 'camera' -> 'lidar' -> 'camera'"
+TWO_PARENTS = "frame 'camera' has 2 parents ('base', 'lidar'); tf allows one"
+SHORT = "PointCloud2 data has 24000 bytes, 48000 needed"
+STEP = "lies past the end of a 8-byte point (point_step smaller than its fields)"
+NO_X = "PointCloud2 has no x field"
+NO_TF_PATH = "no initial guess: the log's tf has no path from 'lidar' to 'camera'"
+FAR = "beyond io.max_range_m = 1000 m"
+NO_SCANS = "need at least 2 usable scans on /lidar/points to map, got 0"
+CALIB_NO_POINTS = "no valid points: all 1 paired scans on /lidar/points have fewer than 100 valid points"
+NOT_A_TREE = "the log's tf is not a tree"
+IGNORED_TF = "not using /tf odometry: the log's tf is not a tree"
+
+MATRIX: list[MatrixCase] = [
+    # images (item 1 and the 100000 x 100000 claim)
+    MatrixCase("image_0x0", with_image(bi.set_attrs(height=0, width=0, step=0)), all_commands(
+        Expect(0, f"/camera/image_raw: 3 of 3 messages cannot be decoded (skipped by the other commands); first: "
+                  f"{EMPTY_IMAGE}"),
+        Expect(1, EMPTY_IMAGE), Expect(0), Expect(1, EMPTY_IMAGE))),
+    MatrixCase("image_100000x100000_claimed_over_64_bytes", with_image(huge_image), all_commands(
+        Expect(0, HUGE), Expect(1, HUGE), Expect(0), Expect(1, HUGE))),
+    # tf (item 2) and bad tf entries (item 4)
+    MatrixCase("tf_loop", lambda tmp: good(tmp, mutate_tf=bi.tf_extra_edge("camera", "lidar")), all_commands(
+        Expect(0, LOOP), Expect(1, f"no initial guess: {NOT_A_TREE}: {LOOP}"), Expect(0, IGNORED_TF),
+        Expect(1, LOOP))),
+    MatrixCase("tf_two_parents", lambda tmp: good(tmp, mutate_tf=bi.tf_extra_edge("base", "camera", 5.0)),
+               all_commands(Expect(0, TWO_PARENTS), Expect(1, TWO_PARENTS), Expect(0, IGNORED_TF),
+                            Expect(1, TWO_PARENTS))),
+    MatrixCase("tf_zero_quaternion", lambda tmp: good(tmp, mutate_tf=bi.tf_rotation(0, 0, 0, 0)), all_commands(
+        Expect(0, "skipped 1 bad tf entries (1 on /tf_static); first: transform lidar -> camera has a quaternion "
+                  "of norm 0"),
+        Expect(1, NO_TF_PATH), Expect(0, "skipped 1 bad tf entries"), Expect(1, NO_TF_PATH))),
+    MatrixCase("tf_nan_translation", lambda tmp: good(tmp, mutate_tf=bi.tf_translation(np.nan, 0, 0)),
+               all_commands(Expect(0, "transform lidar -> camera has NaN or infinite values"), Expect(1, NO_TF_PATH),
+                            Expect(0, "skipped 1 bad tf entries"), Expect(1, NO_TF_PATH))),
+    # point clouds (items 4 and 8)
+    MatrixCase("pc2_data_shorter_than_header_says", with_cloud(bi.cut_data(0.5)), all_commands(
+        Expect(0, f"/lidar/points: 3 of 3 messages cannot be decoded (skipped by the other commands); first: {SHORT}"),
+        Expect(1, SHORT), Expect(1, NO_SCANS), Expect(1, SHORT))),
+    MatrixCase("pc2_point_step_smaller_than_fields", with_cloud(bi.set_attrs(point_step=8)), all_commands(
+        Expect(0, STEP), Expect(1, STEP), Expect(1, NO_SCANS), Expect(1, STEP))),
+    MatrixCase("pc2_no_x_field", with_cloud(rename_x_field), all_commands(
+        Expect(0, NO_X), Expect(1, NO_X), Expect(1, NO_SCANS), Expect(1, NO_X))),
+    MatrixCase("pc2_all_points_at_1e30_m", with_cloud(bi.cloud_of(far_points)), all_commands(
+        Expect(0, f"/lidar/points: the first scan has 20000 points {FAR}"), Expect(1, CALIB_NO_POINTS),
+        Expect(1, NO_SCANS), Expect(1, CALIB_NO_POINTS))),
+    MatrixCase("pc2_tenth_of_points_at_1e30_m", with_cloud(tenth_of_points_far), all_commands(
+        Expect(0, f"/lidar/points: the first scan has 300 points {FAR}"), Expect(0), Expect(0), Expect(0))),
+    # odometry (item 5)
+    MatrixCase("tf_odometry_jumps_1000_m", lambda tmp: good(tmp, frames=4, odometry=bi.odometry_jump(2, 1000.0)),
+               all_commands(Expect(0), Expect(0), Expect(0, "implausible odometry"),
+                            Expect(0, "implausible odometry"))),
+    MatrixCase("stamps_all_equal", lambda tmp: good(tmp, stamp_ns=lambda i: bi.START_NS),
+               all_commands(Expect(0), Expect(0), Expect(0), Expect(0))),
+    # option values (item 3): usage errors exit 2 naming the flag; content stays exit 1
+    MatrixCase("usage_workers_negative", good, same_for_all(Expect(2, "--workers -1: must be >= 0")),
+               extra=("--workers", "-1")),
+    MatrixCase("usage_config_file_value", config_file("[io]\nmax_range_m = -5\n"),
+               same_for_all(Expect(2, "bad value for io.max_range_m: must be > 0")), extra=("--config", "bad.toml")),
+    MatrixCase("usage_config_file_type_beside_a_good_flag", config_file('[calibration]\nframes = "x"\n'),
+               {c: Expect(2, "bad.toml: bad value 'x' for calibration.frames: expected an integer, got str")
+                for c in ("calibrate", "process")}, extra=("--config", "bad.toml", "--frames", "5")),
+    MatrixCase("usage_frames_negative", good, {"calibrate": Expect(2, "--frames -1: must be >= 1"),
+                                               "process": Expect(2, "--frames -1: must be >= 1")},
+               extra=("--frames", "-1")),
+    MatrixCase("usage_search_deg_nan", good, {"calibrate": Expect(2, "--search-deg nan: expected a finite number")},
+               extra=("--search-deg", "nan")),
+    MatrixCase("usage_voxel_zero", good, {"map": Expect(2, "--voxel 0.0: must be > 0")}, extra=("--voxel", "0")),
+    MatrixCase("camera_without_camera_info", lambda tmp: good(tmp, with_info=False), all_commands(
+        Expect(0, "/camera/image_raw: image topic without a CameraInfo topic beside it"),
+        Expect(1, "no CameraInfo for the image topics (/camera/image_raw)"), Expect(0),
+        Expect(1, "no CameraInfo for the image topics (/camera/image_raw)"))),
+    MatrixCase("no_lidar_topic", no_lidar, all_commands(
+        Expect(0), Expect(1, "no PointCloud2 topic"), Expect(1, "no PointCloud2 topic"),
+        Expect(1, "no PointCloud2 topic"))),
+    # output folder (item 6): checked before any work (the log given does not exist), the user's path named
+    MatrixCase("out_config_toml_is_a_folder", missing, {
+        c: Expect(1, "cannot write config.toml in output folder") for c in ("calibrate", "map", "process")},
+        out=config_toml_is_a_folder),
+    MatrixCase("out_is_a_file", missing, {
+        c: Expect(1, "exists and is not a folder") for c in ("calibrate", "map", "process")}, out=out_is_a_file),
+]  # fmt: skip
+
+
+def matrix_argv(case: MatrixCase, command: str, tmp: Path) -> list[str]:
+    log = case.make(tmp)
+    (tmp / "fast.toml").write_text(FAST_TOML)
+    extra = [str(tmp / a) if a == "bad.toml" else a for a in case.extra]
+    if command == "inspect":
+        return ["inspect", str(log), *extra]
+    out = case.out(tmp, command) if case.out else tmp / f"out_{command}"
+    fast = ["--config", str(tmp / "fast.toml"), "-q", "--out", str(out)]
+    return [command, str(log), *fast, *(["--no-report"] if command == "calibrate" else []), *extra]
+
+
+MATRIX_RUNS = [(case, command) for case in MATRIX for command in COMMANDS if command in case.expect]
+
+
+def test_matrix_covers_every_command() -> None:
+    """Every command meets every log case (usage and output-folder cases: the commands that take the flag)."""
+    log_cases = [c for c in MATRIX if not c.extra and c.out is None]
+    assert all(set(c.expect) == set(COMMANDS) for c in log_cases)
+    assert len(MATRIX_RUNS) >= 60
+
+
+@pytest.mark.parametrize(("case", "command"), MATRIX_RUNS, ids=[f"{c.name}-{cmd}" for c, cmd in MATRIX_RUNS])
+def test_every_command_on_bad_log(case: MatrixCase, command: str, tmp_path: Path) -> None:
+    expect = case.expect[command]
+    argv = matrix_argv(case, command, tmp_path)
+    outcome = run_cli(argv)
+    check(outcome, Case(case.name, lambda tmp: argv, expect.exit_code, expect.message))
+    if case.out is not None:
+        error = outcome.stderr.splitlines()[0]
+        assert str(tmp_path / f"out_{command}") in error and ".tmp" not in error, error
+    if command == "process" and outcome.exit_code == 0:
+        result = json.loads((tmp_path / "out_process" / "result.json").read_text())
+        jumped = [2] if case.name == "tf_odometry_jumps_1000_m" else []
+        assert result["mapping"]["implausible_motion"] == jumped
+        assert len([w for w in result["warnings"] if "implausible odometry" in w]) == len(jumped)
+
+
+def test_tf_structure_problems_name_the_frames() -> None:
+    """A tree has none; a frame with two parents and a 3-frame loop are each named once."""
+    from fleetcal.pipeline.transforms import TransformTree
+    from fleetcal.readers.frames import tf_structure_problems
+
+    tree = TransformTree()
+    for parent, child in [("map", "odom"), ("odom", "base"), ("base", "lidar"), ("base", "camera")]:
+        tree.add(parent, child, np.eye(4), 0, static=True)
+    assert tf_structure_problems(tree) == []
+    tree.add("lidar", "camera", np.eye(4), 0, static=True)
+    tree.add("a", "b", np.eye(4), 0, static=True)
+    tree.add("b", "c", np.eye(4), 0, static=True)
+    tree.add("c", "a", np.eye(4), 0, static=True)
+    assert tf_structure_problems(tree) == [
+        "frame 'camera' has 2 parents ('base', 'lidar'); tf allows one",
+        "tf edges form a loop: 'a' -> 'b' -> 'c' -> 'a'",
+    ]
+
+
+def test_map_with_local_workers_writes_nothing_but_its_lines_to_stderr(tmp_path: Path) -> None:
+    """``fleetcal map`` with a local dask cluster (2 workers) on a log whose stamps are all equal: stderr
+    holds only fleetcal's own lines (no distributed heartbeat errors while the cluster shuts down)."""
+    log = good(tmp_path, stamp_ns=lambda i: bi.START_NS)
+    proc = run_subprocess(["map", str(log), "--workers", "2", "-q", "--out", str(tmp_path / "out")])
+    assert proc.returncode == 0, proc.stderr
+    stray = [line for line in proc.stderr.splitlines() if line.strip() and not line.startswith(ALLOWED_STDERR)]
+    assert stray == [], proc.stderr
+    assert "distributed" not in proc.stderr
+
+
+@pytest.mark.parametrize("command", ["calibrate", "map", "process"])
+def test_unwritable_out_is_found_before_any_work(command: str, tmp_path: Path) -> None:
+    """An output folder nobody may write in (``chattr +i``: root too) is one error naming the user's path,
+    found before the log is opened (the log given does not exist)."""
+    out = tmp_path / "out"
+    out.mkdir()
+    if subprocess.run(["chattr", "+i", str(out)], capture_output=True).returncode != 0:
+        pytest.skip("chattr +i is not permitted here")
+    try:
+        case = MatrixCase("unwritable", missing, {}, out=lambda tmp, cmd: out)
+        outcome = run_cli(matrix_argv(case, command, tmp_path))
+    finally:
+        subprocess.run(["chattr", "-i", str(out)], check=False)
+    message = f"cannot write in output folder {out}: Operation not permitted"
+    check(outcome, Case("unwritable", lambda tmp: [], 1, message))
+    assert list(out.iterdir()) == []
+
+
+def test_write_toml_error_names_the_final_path(tmp_path: Path) -> None:
+    """``config.toml`` that is a folder: the OSError names it, not the temporary file written beside it."""
+    from fleetcal.pipeline.config import Config, write_toml
+
+    target = tmp_path / "config.toml"
+    target.mkdir()
+    with pytest.raises(OSError) as raised:
+        write_toml(Config(), target)
+    assert raised.value.filename == str(target)
+    assert [p.name for p in tmp_path.iterdir()] == ["config.toml"]

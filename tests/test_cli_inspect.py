@@ -26,7 +26,7 @@ from tests.test_readers import (
 
 Capsys = pytest.CaptureFixture[str]
 JSON_KEYS = {"paths", "format", "start_ns", "end_ns", "topics", "lidar_topics", "camera_topics", "tf",
-             "undecodable_topics", "lidar_scans"}
+             "undecodable_topics", "lidar_scans", "problems"}
 
 
 def _json(capsys: Capsys, argv: list[str]) -> dict:
@@ -44,6 +44,7 @@ def test_json_report_of_every_format(kind: str, tmp_path: Path, capsys: Capsys) 
     path = write_log(kind, tmp_path, entries)
     result = _json(capsys, ["inspect", str(path), "--json"])
     assert set(result) == JSON_KEYS
+    assert result["problems"] == []
     assert result["format"] == {"mcap-ros2": "mcap", "mcap-ros1": "mcap", "ros1": "ros1"}.get(kind, "ros2")
     assert result["paths"] == [str(path)]
     assert result["start_ns"] == T0_NS

@@ -97,10 +97,25 @@ def test_bad_images_raise() -> None:
     for encoding in ("yuv422", "32FC1", "bayer_rggb16"):
         with pytest.raises(UnsupportedEncodingError, match=encoding):
             decode_image(dataclasses.replace(msg, encoding=encoding), "/c")
-    empty = decode_image(
-        dataclasses.replace(msg, height=0, width=0, step=0, data=np.zeros(0, np.uint8)), "/c"
-    )
-    assert empty.image.shape == (0, 0, 3)
+    for height, width in ((0, 0), (0, 32), (24, 0)):
+        with pytest.raises(DecodeError, match=f"image size {width}x{height} is empty"):
+            decode_image(dataclasses.replace(msg, height=height, width=width, step=width * 3), "/c")
+
+
+def test_huge_claimed_image_is_rejected_without_allocating() -> None:
+    """100000 x 100000 rgb8 (30 GB) claimed over 16 bytes: rejected from the sizes alone."""
+    import tracemalloc
+
+    msg = rm.image(STAMP, "c", _rgb(), "rgb8")
+    huge = dataclasses.replace(msg, height=100_000, width=100_000, step=300_000, data=np.zeros(16, np.uint8))
+    tracemalloc.start()
+    try:
+        with pytest.raises(DecodeError, match="image data has 16 bytes, 30000000000 needed for 100000x100000"):
+            decode_image(huge, "/c")
+        _, peak_bytes = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak_bytes < 1_000_000
 
 
 @pytest.mark.parametrize("profile", ["ros2", "ros1"])

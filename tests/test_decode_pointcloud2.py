@@ -317,7 +317,8 @@ def test_real_logs_decode(shared_data: Path, log: str, min_points: int, channels
 
 @pytest.mark.parametrize("organized", [False, True])
 def test_numba_kernel_matches_numpy_reference(organized: bool) -> None:
-    """The numba x, y, z gather agrees with ``xyz_numpy`` on random, NaN, zero, inf and row-padded input."""
+    """The numba x, y, z gather agrees with ``xyz_numpy`` on random, NaN, zero, inf, far (1e30 m, 1030 m
+    beyond the 1000 m default range) and row-padded input, at the default and a 1 m range."""
     from fleetcal.readers.decode.pointcloud2 import _xyz_kernel, xyz_numpy
 
     rng = np.random.default_rng(7)
@@ -328,6 +329,10 @@ def test_numba_kernel_matches_numpy_reference(organized: bool) -> None:
     pts[bad[20:40]] = 0.0
     pts[bad[40:], 1] = -np.inf
     pts[bad[40:45]] = [0.0, 0.0, 1e-30]
+    good = np.setdiff1d(np.arange(h * w), bad)
+    pts[good[:5], 0] = 1e30
+    pts[good[5:10]] = [900.0, 500.0, 0.0]
+    pts[good[10:15]] = [600.0, 0.0, 0.0]
     msg = rm.pointcloud2(STAMP, "l", pts, {"ring": np.arange(h * w, dtype=np.uint16)}, point_step=24,
                          organized_shape=(h, w) if organized else None)  # fmt: skip
     if organized:
@@ -339,6 +344,14 @@ def test_numba_kernel_matches_numpy_reference(organized: bool) -> None:
     ref_points, ref_valid = xyz_numpy(grid[:, 0], grid[:, 1], grid[:, 2])
     np.testing.assert_array_equal(fast[1], ref_valid)
     np.testing.assert_array_equal(fast[0], ref_points)
-    assert int(ref_valid.sum()) == h * w - 55
+    assert int(ref_valid.sum()) == h * w - 65
     frame = decode_pointcloud2(msg, "/l")
     np.testing.assert_array_equal(frame.channels["ring"], np.flatnonzero(ref_valid))
+    assert frame.dropped_points == 65
+    near = _xyz_kernel(msg, msg.data, h, w, msg.row_step, 24, max_range_m=1.0)
+    ref_near_points, ref_near_valid = xyz_numpy(grid[:, 0], grid[:, 1], grid[:, 2], max_range_m=1.0)
+    assert near is not None
+    np.testing.assert_array_equal(near[1], ref_near_valid)
+    np.testing.assert_array_equal(near[0], ref_near_points)
+    in_range = np.linalg.norm(grid[:, :3].astype(np.float64), axis=1) <= 1.0
+    assert int(ref_near_valid.sum()) == int((in_range & ref_valid).sum()) > 0

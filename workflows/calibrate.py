@@ -177,7 +177,7 @@ def collect_frames(
     sparse = 0
     for lidar, camera in iter_pairs(
         reader, lidar_topic, camera_topic, config.io.pairing_tolerance_ns, max_pairs=c.frames, stats=stats,
-        rectified_topics=config.io.rectified_topics,
+        rectified_topics=config.io.rectified_topics, max_range_m=config.io.max_range_m,
     ):
         out.lidar_frame, out.camera_frame = lidar.frame_id.lstrip("/"), camera.frame_id.lstrip("/")
         if lidar.n_points < c.min_points:
@@ -208,7 +208,8 @@ def collect_frames(
         if sparse:
             raise InputError(
                 f"no valid points: all {sparse} paired scans on {lidar_topic} have fewer than "
-                f"{c.min_points} valid points (empty or NaN clouds)"
+                f"{c.min_points} valid points (empty clouds, or NaN or beyond io.max_range_m "
+                f"{config.io.max_range_m:g} m)"
             )
         if stats.lidar_frames == 0 or stats.camera_frames == 0:
             raise InputError(f"no messages on {lidar_topic if stats.lidar_frames == 0 else camera_topic}")
@@ -249,7 +250,9 @@ def run_calibration(
     try:
         tree: TransformTree | None = load_tf_tree(reader)
     except InputError as err:
-        log.warning("ignoring the log's tf: %s", err)
+        if not initial:
+            raise InputError(f'no initial guess: {err}; give one with --initial "x y z roll pitch yaw"') from err
+        log.warning("ignoring the log's tf (no motion compensation): %s", err)
         tree = None
     solver = solver_config(config)
     for topic in config.io.rectified_topics:

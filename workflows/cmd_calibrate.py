@@ -109,6 +109,7 @@ def overrides(args: argparse.Namespace) -> dict[str, Any]:
 def run(args: argparse.Namespace) -> int:
     from fleetcal.workflows import calibrate as recipe
     from fleetcal.workflows.common import (
+        CALIBRATE_OUTPUTS,
         calibration_notes,
         config_from_args,
         open_logs,
@@ -123,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
         from fleetcal.workflows.calibrate_cameras import run_cli
 
         return run_cli(args, config)
-    out_dir = prepare_out_dir(args.out)
+    out_dir = prepare_out_dir(args.out, CALIBRATE_OUTPUTS)
     with open_logs(args.logs, config, quiet=args.quiet) as reader:
         lidar = resolve_lidar(reader, args.lidar)
         cameras = resolve_cameras(reader, args.camera)

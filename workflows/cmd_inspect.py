@@ -1,5 +1,7 @@
 """``fleetcal inspect LOG [LOG ...]``: topics, types, counts, rates, time span, frame ids, lidar and
-camera topics, tf edges and undecodable topics of a log.
+camera topics, tf edges, undecodable topics of a log, and the problems ``calibrate``, ``map`` and
+``process`` will meet in it (undecodable messages, bad tf entries, a tf that is not a tree, a first
+scan with no valid point or with points beyond ``io.max_range_m``), each also a ``warning:`` line.
 
 A damaged MCAP is read as far as it is intact; the report is printed, then a line says how many
 messages were recovered and how many bytes were lost. Without ``--allow-truncated`` that line is an
@@ -47,14 +49,20 @@ def register(subparsers: Any, common: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Inspect the logs and print the report; 0 on success."""
+    """Inspect the logs and print the report; each problem the other commands will meet is also a
+    ``warning:`` line on stderr (exit 0); 0 on success."""
+    from fleetcal.workflows.common import config_from_args
+
+    config = config_from_args(args, {})
     with open_log(args.logs, allow_truncated=True) as reader:
-        report = inspect_log(reader)
+        report = inspect_log(reader, config.io.max_range_m)
     if args.json:
         emit_json(report.to_json())
     else:
         sys.stdout.write(format_report(report))
         sys.stdout.flush()
+    for problem in report.problems:
+        sys.stderr.write(f"warning: {problem}\n")
     truncation = report.truncation
     if truncation is None:
         return 0

@@ -38,7 +38,7 @@ def run(args: argparse.Namespace) -> int:
     from fleetcal.pipeline.engine import Engine
     from fleetcal.pipeline.errors import UsageError
     from fleetcal.workflows import mapping
-    from fleetcal.workflows.common import config_from_args, open_logs, prepare_out_dir, write_config
+    from fleetcal.workflows.common import MAP_OUTPUTS, config_from_args, open_logs, prepare_out_dir, write_config
     from fleetcal.workflows.frame_sources import STAGE_WARMUPS
     from fleetcal.workflows.sensors import resolve_lidar
 
@@ -50,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
         "mapping.deskew": False if args.no_deskew else None,
         "io.allow_truncated": True if args.allow_truncated else None,
     })  # fmt: skip
-    out_dir = prepare_out_dir(args.out)
+    out_dir = prepare_out_dir(args.out, MAP_OUTPUTS)
     with open_logs(args.logs, config, quiet=args.quiet) as reader:
         lidar = resolve_lidar(reader, args.lidar)
         with Engine(scheduler=config.engine.scheduler, workers=config.engine.workers, quiet=args.quiet,
@@ -65,9 +65,13 @@ def run(args: argparse.Namespace) -> int:
         s = outcome.summary()
         print(f"{s['scans']} scans, path {s['path_length_m']:.1f} m, mean fitness {s['mean_fitness'] or 0:.3f}, "
               f"{len(s['failed_pairs'])} failed and {len(s['degenerate_pairs'])} degenerate pairs, "
+              f"{len(s['implausible_motion'])} implausible motions, "
               f"{s['map_points']} map points"
               + (f", {s['deskewed_scans']} scans de-skewed" if s["deskewed_scans"] else ""))  # fmt: skip
         print(f"wrote {out_dir}/trajectory.parquet, map.parquet, report/map_top.png", file=sys.stderr)
-    if outcome.scans_skipped and not args.quiet:
-        print(f"warning: skipped {outcome.scans_skipped} unusable scans (empty, NaN or undecodable)", file=sys.stderr)
+    for line in outcome.warnings():
+        print(f"warning: {line}", file=sys.stderr)
+    if outcome.scans_skipped:
+        print(f"warning: skipped {outcome.scans_skipped} unusable scans (empty, NaN, beyond io.max_range_m or "
+              "undecodable)", file=sys.stderr)
     return 0

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import Any
 
 from fleetcal.workflows.cli import emit_json
@@ -28,14 +29,14 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fleetcal.workflows.common import calibration_notes, config_from_args, prepare_out_dir, table
-    from fleetcal.workflows.process import process_log
+    from fleetcal.workflows.common import PROCESS_OUTPUTS, calibration_notes, config_from_args, prepare_out_dir, table
+    from fleetcal.workflows.process import process_log, writeback_path
 
     config = config_from_args(args, {
         "mapping.channels": args.channels or "combined", "calibration.frames": args.frames,
         "io.allow_truncated": True if args.allow_truncated else None,
     })  # fmt: skip
-    out_dir = prepare_out_dir(args.out)
+    out_dir = prepare_out_dir(args.out, (*PROCESS_OUTPUTS, writeback_path(args.logs[0], Path(args.out)).name))
     result = process_log(args.logs, out_dir, config, workers=config.engine.workers,
                          scheduler=config.engine.scheduler, quiet=args.quiet)  # fmt: skip
     if args.json:

@@ -4,24 +4,63 @@ from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
-from fleetcal.pipeline.config import Config, load_config, write_toml
-from fleetcal.pipeline.errors import InputError, UsageError
+from fleetcal.pipeline.config import COMMAND_LINE, Config, load_config, write_toml
+from fleetcal.pipeline.errors import ConfigError, InputError, UsageError
 from fleetcal.readers.base import LogReader
 from fleetcal.readers.open import open_log, truncation_of
+
+REPORT_FOLDER = "report"
+CALIBRATE_OUTPUTS = ("config.toml", "calibration.parquet", "frames.parquet")
+MAP_OUTPUTS = ("config.toml", "trajectory.parquet", "map.parquet")
+PROCESS_OUTPUTS = (*CALIBRATE_OUTPUTS, "trajectory.parquet", "map.parquet", "result.json")
+"""File names each command writes in its ``--out`` folder (besides ``report/``)."""
 
 CAMERA_AXIS_NAMES = {"x": "x (image right)", "y": "y (image down)", "z": "z (optical axis)"}
 
 
+FLAG_OF_KEY = {
+    "mapping.voxel_m": "--voxel",
+    "mapping.map_voxel_m": "--map-voxel",
+    "mapping.max_corr_m": "--max-corr",
+    "mapping.use_tf_odometry": "--no-tf-odometry",
+    "mapping.deskew": "--no-deskew",
+    "calibration.motion_compensation": "--no-motion-compensation",
+    "calibration.point_times": "--no-point-times",
+    "io.rectified_topics": "--rectified-topic",
+}
+"""Config key -> the flag that sets it, where the flag is not ``--`` + the key's name with ``-`` for ``_``."""
+
+
+def flag_of(key: str) -> str:
+    """The command-line flag that sets config key ``section.key`` (``calibration.search_deg`` -> ``--search-deg``)."""
+    return FLAG_OF_KEY.get(key, "--" + key.partition(".")[2].replace("_", "-"))
+
+
 def config_from_args(args: argparse.Namespace, overrides: dict[str, Any]) -> Config:
-    """Defaults < ``--config`` TOML < ``FLEETCAL_*`` environment < command-line flags."""
-    engine = {
+    """Defaults < ``--config`` TOML < ``FLEETCAL_*`` environment < command-line flags.
+
+    Raises:
+        UsageError: a value that a flag, the ``--config`` file or the environment gives is rejected (exit 2);
+            a flag's value is named by the flag (``--frames -1: must be >= 1``).
+    """
+    given = {
         "engine.scheduler": getattr(args, "scheduler", None),
         "engine.workers": getattr(args, "workers", None),
+        **overrides,
     }
-    return load_config(getattr(args, "config", None), overrides={**engine, **overrides})
+    try:
+        return load_config(getattr(args, "config", None), overrides=given)
+    except ConfigError as err:
+        from_flag = err.source in (None, COMMAND_LINE)
+        value = given.get(err.key) if err.key and from_flag else None
+        if value is None:
+            raise UsageError(str(err)) from err
+        raise UsageError(f"{flag_of(str(err.key))} {value}: {err.reason}") from err
 
 
 def open_logs(paths: list[str], config: Config, quiet: bool = False) -> LogReader:
@@ -36,7 +75,15 @@ def open_logs(paths: list[str], config: Config, quiet: bool = False) -> LogReade
     return reader
 
 
-def prepare_out_dir(out: str | None) -> Path:
+def prepare_out_dir(out: str | None, outputs: Iterable[str] = ("config.toml",)) -> Path:
+    """The output folder ``out``, created and checked before any work: it is a folder (or can be made
+    one), a file can be written in it, and none of the ``outputs`` (file names the command writes there)
+    exists as a folder. Every message names ``out`` as the user gave it.
+
+    Raises:
+        UsageError: ``out`` is empty.
+        InputError: ``out`` is a file, cannot be created or written, or an output name is taken by a folder.
+    """
     if not out:
         raise UsageError("--out DIR is required")
     path = Path(out)
@@ -45,7 +92,18 @@ def prepare_out_dir(out: str | None) -> Path:
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as err:
-        raise InputError(f"cannot create output folder {out}: {err.strerror}") from err
+        raise InputError(f"cannot create output folder {out}: {err.strerror or err}") from err
+    try:
+        with tempfile.NamedTemporaryFile(dir=path, prefix=".fleetcal-write-check."):
+            pass
+    except OSError as err:
+        raise InputError(f"cannot write in output folder {out}: {err.strerror or err}") from err
+    for name in outputs:
+        if (path / name).is_dir():
+            raise InputError(f"cannot write {name} in output folder {out}: {path / name} is a folder")
+    report = path / REPORT_FOLDER
+    if report.exists() and not report.is_dir():
+        raise InputError(f"cannot write the report in output folder {out}: {report} is not a folder")
     return path
 
 

@@ -46,14 +46,17 @@ class LogFrames:
     Attributes:
         paths: the log's files (as given to ``readers.open.open_log``).
         allow_truncated: open damaged logs with what is intact.
+        max_range_m: lidar points farther than this are dropped at decode, metres (None: the decoder's default).
     """
 
     paths: tuple[str, ...]
     allow_truncated: bool
+    max_range_m: float | None
 
-    def __init__(self, log_paths: PathsArg, allow_truncated: bool = False) -> None:
+    def __init__(self, log_paths: PathsArg, allow_truncated: bool = False, max_range_m: float | None = None) -> None:
         object.__setattr__(self, "paths", _normalise_paths(log_paths))
         object.__setattr__(self, "allow_truncated", allow_truncated)
+        object.__setattr__(self, "max_range_m", max_range_m)
 
     def log_times(self, topic: str, start_ns: int | None, end_ns: int | None) -> NDArray[np.int64]:
         """Log times, ns, of the topic's messages in ``[start_ns, end_ns)``; nothing is decoded.
@@ -84,7 +87,8 @@ class LogFrames:
                 try:
                     msg = reader.deserialize(raw)
                     if info is None:
-                        frame = decode_pointcloud2(msg, topic, raw.log_time_ns)
+                        frame = decode_pointcloud2(msg, topic, raw.log_time_ns,
+                                                   *(() if self.max_range_m is None else (self.max_range_m,)))
                     else:
                         frame = decode_camera_image(msgtype, msg, topic, raw.log_time_ns)
                         frame.camera = info.model

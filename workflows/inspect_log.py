@@ -1,29 +1,46 @@
-"""What a log holds: topics, counts, rates, frame ids, lidar/camera topics, tf edges, and what the
-first scan of each lidar topic carries (its channels and per-point times).
+"""What a log holds: topics, counts, rates, frame ids, lidar/camera topics, tf edges, what the
+first scan of each lidar topic carries (its channels and per-point times), and every problem the
+other commands will meet in it.
 
-``inspect_log`` makes one streaming pass over the raw messages (bytes only) and deserialises just
-the first message of each topic (for its ``header.frame_id``; a lidar's is also decoded) and the
-``/tf`` + ``/tf_static`` messages (for the tf edges), so inspecting a large log costs one read of its
-bytes.
+``inspect_log`` makes one streaming pass over the raw messages. It deserialises the first message of
+each topic (for its ``header.frame_id``; a lidar's first scan is also decoded), every tf message (the
+edges, with the same checks ``readers.frames.load_tf_tree`` makes), and every PointCloud2, Image,
+CompressedImage and CameraInfo message, whose sizes and fields are checked against their data without
+decoding points or pixels (``check_pointcloud2``, ``check_image``, ``check_compressed_image``), so
+inspecting a log costs about one read of its bytes.
 """
 
 from __future__ import annotations
 
-import contextlib
 import datetime as dt
 from dataclasses import dataclass, field
 from typing import Any
 
 from fleetcal.pipeline.errors import DecodeError
-from fleetcal.pipeline.msgtypes import IMAGE_TYPES, POINTCLOUD2
+from fleetcal.pipeline.msgtypes import CAMERA_INFO, COMPRESSED_IMAGE, IMAGE, IMAGE_TYPES, POINTCLOUD2, TF_MESSAGE
 from fleetcal.pipeline.point_times import PointTimeKind, classify_point_times
+from fleetcal.pipeline.transforms import TransformTree
 from fleetcal.readers.base import LogReader
-from fleetcal.readers.decode.pointcloud2 import decode_pointcloud2
-from fleetcal.readers.frames import camera_info_topic_for
+from fleetcal.readers.decode.camera_info import decode_camera_info
+from fleetcal.readers.decode.image import check_compressed_image, check_image
+from fleetcal.readers.decode.pointcloud2 import MAX_RANGE_M, check_pointcloud2, decode_pointcloud2
+from fleetcal.readers.frames import (
+    TfCheck,
+    add_tf_message,
+    camera_info_topic_for,
+    is_static_tf_topic,
+    tf_structure_problems,
+)
 from fleetcal.readers.mcap_reader import TruncationInfo
 from fleetcal.readers.open import truncation_of
 
-TF_TOPICS = {"/tf": False, "/tf_static": True}
+CHECKS: dict[str, Any] = {
+    POINTCLOUD2: check_pointcloud2,
+    IMAGE: check_image,
+    COMPRESSED_IMAGE: check_compressed_image,
+    CAMERA_INFO: decode_camera_info,
+}
+"""Message type -> a check of one deserialised message that raises DecodeError as the commands would."""
 
 
 @dataclass(frozen=True)
@@ -63,6 +80,9 @@ class LidarSummary:
 
     Attributes:
         points: valid points in it.
+        dropped: points dropped at decode: NaN or infinite, all zero (no return), or beyond ``max_range_m``.
+        beyond_range: of those, finite points beyond ``max_range_m``.
+        max_range_m: the range limit used, metres (``io.max_range_m``).
         channels: its per-point channels (decoder names, ``time`` normalised to s from the stamp).
         time_range_s: (first, last) per-point time minus the header stamp, s; None without a time field.
         point_times: ``none`` (no time field), ``constant`` (within 1 ms: a scan the driver de-skewed),
@@ -75,6 +95,9 @@ class LidarSummary:
     channels: tuple[str, ...]
     time_range_s: tuple[float, float] | None
     point_times: PointTimeKind
+    dropped: int = 0
+    beyond_range: int = 0
+    max_range_m: float = MAX_RANGE_M
 
     def describe(self) -> str:
         if self.time_range_s is None:
@@ -85,15 +108,32 @@ class LidarSummary:
                        "sweep": "used to move each point by its firing time",
                        "foreign": "not a sweep (another clock?): not used"}[self.point_times]  # fmt: skip
             times = f"point times {t0:.6g}..{t1:.6g} s from the stamp, {meaning}"
-        return f"{self.points} points; channels {', '.join(self.channels) or 'none'}; {times}"
+        dropped = ""
+        if self.dropped:
+            far = f", {self.beyond_range} of them beyond {self.max_range_m:g} m" if self.beyond_range else ""
+            dropped = f" ({self.dropped} dropped: NaN, zero{far})"
+        return f"{self.points} points{dropped}; channels {', '.join(self.channels) or 'none'}; {times}"
+
+    def problem(self, topic: str) -> str | None:
+        """The problem the first scan shows to the other commands, or None."""
+        if self.beyond_range:
+            return (f"{topic}: the first scan has {self.beyond_range} points beyond io.max_range_m = "
+                    f"{self.max_range_m:g} m (corrupt coordinates?): they are dropped")
+        if self.points == 0:
+            return f"{topic}: the first scan has no valid point ({self.dropped} NaN, infinite or zero)"
+        return None
 
 
-def lidar_summary(msg: Any, topic: str) -> LidarSummary:
+def lidar_summary(msg: Any, topic: str, max_range_m: float = MAX_RANGE_M) -> LidarSummary:
     """``LidarSummary`` of a decoded PointCloud2 message (DecodeError when it cannot be decoded)."""
-    frame = decode_pointcloud2(msg, topic)
+    frame = decode_pointcloud2(msg, topic, max_range_m=max_range_m)
     times = classify_point_times(frame.channels.get("time"))
     span = None if times.kind == "none" else (times.first_s, times.last_s)
-    return LidarSummary(frame.n_points, tuple(frame.channels), span, times.kind)
+    beyond = 0
+    if frame.dropped_points:
+        beyond = decode_pointcloud2(msg, topic, max_range_m=float("inf")).n_points - frame.n_points
+    return LidarSummary(frame.n_points, tuple(frame.channels), span, times.kind, frame.dropped_points, beyond,
+                        max_range_m)  # fmt: skip
 
 
 @dataclass
@@ -112,6 +152,10 @@ class InspectReport:
         undecodable_topics: topics whose type the log cannot decode.
         truncation: what was lost when the log is damaged, else None.
         lidar_scans: lidar topic -> its first scan's ``LidarSummary`` (where it decodes).
+        problems: what ``calibrate``, ``map`` and ``process`` will meet, one line each: messages that
+            cannot be decoded (per topic: how many, the first reason), bad tf entries, tf edges that
+            are not a tree, a first scan with no valid point or with points beyond the range limit, an
+            image topic without CameraInfo.
     """
 
     paths: list[str]
@@ -127,6 +171,7 @@ class InspectReport:
     truncation: TruncationInfo | None = None
     message_count: int = field(default=0)
     lidar_scans: dict[str, LidarSummary] = field(default_factory=dict)
+    problems: list[str] = field(default_factory=list)
 
     @property
     def duration_s(self) -> float:
@@ -160,6 +205,7 @@ class InspectReport:
                         "point_times": v.point_times}  # fmt: skip
                 for topic, v in self.lidar_scans.items()
             },
+            "problems": list(self.problems),
         }
 
 
@@ -170,6 +216,8 @@ class _TopicStats:
     last_ns: int = 0
     frame_id: str | None = None
     decode_failed: bool = False
+    bad_messages: int = 0
+    first_bad: str | None = None
 
 
 def _frame_id(msg: Any) -> str | None:
@@ -178,11 +226,12 @@ def _frame_id(msg: Any) -> str | None:
     return frame_id if isinstance(frame_id, str) else None
 
 
-def inspect_log(reader: LogReader) -> InspectReport:
-    """Summarise ``reader``'s log in one streaming pass (see module docstring)."""
+def inspect_log(reader: LogReader, max_range_m: float = MAX_RANGE_M) -> InspectReport:
+    """Summarise ``reader``'s log in one streaming pass (see module docstring); lidar points beyond
+    ``max_range_m`` (metres, ``io.max_range_m``) count as problems."""
     infos = reader.topics
     stats = {name: _TopicStats() for name in infos}
-    edges: dict[tuple[str, str, bool], None] = {}
+    tf = TfCheck(TransformTree())
     scans: dict[str, LidarSummary] = {}
     total = 0
     for raw in reader.messages():
@@ -194,24 +243,32 @@ def inspect_log(reader: LogReader) -> InspectReport:
         topic.last_ns = max(topic.last_ns, raw.log_time_ns)
         info = infos.get(raw.topic)
         decodable = info is not None and info.decodable and not topic.decode_failed
-        is_tf = raw.topic in TF_TOPICS
-        if not decodable or (topic.count > 1 and not is_tf):
+        msgtype = info.msgtype if info is not None else ""
+        if not decodable or (topic.count > 1 and msgtype not in CHECKS and msgtype != TF_MESSAGE):
             continue
         try:
             msg = reader.deserialize(raw)
-        except DecodeError:
-            topic.decode_failed = True
+        except DecodeError as err:
+            if msgtype == TF_MESSAGE:
+                tf.bad_entries[raw.topic] = tf.bad_entries.get(raw.topic, 0) + 1
+                tf.first_bad = tf.first_bad or str(err)
+            elif msgtype in CHECKS:
+                _bad_message(topic, err)
+            else:
+                topic.decode_failed = True
             continue
         if topic.count == 1:
             topic.frame_id = _frame_id(msg)
-            if info is not None and info.msgtype == POINTCLOUD2:
-                with contextlib.suppress(DecodeError):  # listed anyway; calibrate / map say what is wrong
-                    scans[raw.topic] = lidar_summary(msg, raw.topic)
-        if is_tf:
-            for transform in getattr(msg, "transforms", []):
-                parent = transform.header.frame_id.lstrip("/")
-                child = transform.child_frame_id.lstrip("/")
-                edges[(parent, child, TF_TOPICS[raw.topic])] = None
+        if msgtype == TF_MESSAGE:
+            add_tf_message(tf, raw.topic, getattr(msg, "transforms", []), is_static_tf_topic(raw.topic))
+        elif msgtype in CHECKS:
+            try:
+                CHECKS[msgtype](msg)
+                if msgtype == POINTCLOUD2 and raw.topic not in scans:
+                    scans[raw.topic] = lidar_summary(msg, raw.topic, max_range_m)
+            except DecodeError as err:
+                _bad_message(topic, err)
+    tf.structure = tf_structure_problems(tf.tree)
 
     summaries: list[TopicSummary] = []
     for name in sorted(stats):
@@ -247,12 +304,38 @@ def inspect_log(reader: LogReader) -> InspectReport:
         lidar_topics=[n for n in names if types[n] == POINTCLOUD2],
         camera_topics=sorted(camera_info),
         camera_info_topics=camera_info,
-        tf=sorted((TfEdge(p, c, s) for p, c, s in edges), key=lambda e: (not e.static, e.parent, e.child)),
+        tf=sorted((TfEdge(*edge) for edge in tf.tree.edges()), key=lambda e: (not e.static, e.parent, e.child)),
         undecodable_topics=[t.name for t in summaries if not t.decodable],
         truncation=truncation_of(reader),
         message_count=total,
         lidar_scans=scans,
+        problems=_problems(stats, scans, tf) + [
+            f"{name}: image topic without a CameraInfo topic beside it: calibrate and process cannot use it"
+            for name in names if types[name] in IMAGE_TYPES and name not in camera_info and stats[name].count
+        ],
     )
+
+
+def _bad_message(topic: _TopicStats, err: DecodeError) -> None:
+    topic.bad_messages += 1
+    topic.first_bad = topic.first_bad or str(err)
+
+
+def _problems(stats: dict[str, _TopicStats], scans: dict[str, LidarSummary], tf: TfCheck) -> list[str]:
+    """The report's problem lines (see ``InspectReport.problems``)."""
+    problems = [
+        f"{name}: {t.bad_messages} of {t.count} messages cannot be decoded (skipped by the other commands); "
+        f"first: {t.first_bad}"
+        for name, t in sorted(stats.items())
+        if t.bad_messages
+    ]
+    problems.extend(p for topic, scan in sorted(scans.items()) if (p := scan.problem(topic)))
+    bad_tf = tf.bad_entries_text()
+    if bad_tf:
+        problems.append(f"tf: {bad_tf} (not used by the other commands)")
+    problems.extend(f"tf: {line}: calibrate then needs --initial, process fails, map ignores the tf"
+                    for line in tf.structure)
+    return problems
 
 
 def _iso(stamp_ns: int) -> str:
@@ -297,4 +380,9 @@ def format_report(report: InspectReport) -> str:
         lines.extend(f"  {name} ({types.get(name) or '?'})" for name in report.undecodable_topics)
     else:
         lines.append("undecodable topics: none")
+    if report.problems:
+        lines.append("problems:")
+        lines.extend(f"  {p}" for p in report.problems)
+    else:
+        lines.append("problems: none")
     return "\n".join(lines) + "\n"

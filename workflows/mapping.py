@@ -33,6 +33,10 @@ from fleetcal.workflows.frame_sources import LogFrames
 log = logging.getLogger(__name__)
 
 CHANNEL_MODES = ("none", "intensity", "color", "combined")
+MIN_FITNESS = 0.3
+"""A registration with a lower fitness (share of points with a correspondence) counts as failed."""
+MAX_WARNED_SCANS = 20
+"""Per-scan odometry warnings printed at most; the rest are counted in one line."""
 
 
 @dataclass
@@ -47,6 +51,51 @@ class MappingOutcome:
     map_channels: dict[str, NDArray[Any]]
     scans_skipped: int
     used_tf_odometry: bool
+    max_speed_m_s: float = float("inf")
+
+    def failed_scans(self) -> list[int]:
+        """Indices of the scans whose registration against the previous one failed (not converged, or
+        fitness below ``MIN_FITNESS``)."""
+        return [s.index for s in self.steps[1:] if not s.converged or s.fitness < MIN_FITNESS]
+
+    def speeds_m_s(self) -> list[float]:
+        """Speed of each scan's motion from the previous one, m/s (first scan: 0). Scans stamped at the
+        previous one's time are given the log's median scan interval; NaN (not judged) where every scan
+        has the same stamp."""
+        dts = [(b.stamp_ns - a.stamp_ns) * 1e-9 for a, b in zip(self.steps, self.steps[1:], strict=False)]
+        positive = [dt for dt in dts if dt > 0]
+        typical = float(np.median(positive)) if positive else 0.0
+        speeds = [0.0]
+        for dt, step in zip(dts, self.steps[1:], strict=True):
+            dist = float(np.linalg.norm(step.T_prev_curr[:3, 3]))
+            dt = dt if dt > 0 else typical
+            speeds.append(dist / dt if dt > 0 else float("nan"))
+        return speeds
+
+    def implausible_scans(self) -> list[int]:
+        """Indices of the scans that moved faster than ``max_speed_m_s`` from the previous one."""
+        return [s.index for s, v in zip(self.steps, self.speeds_m_s(), strict=True) if v > self.max_speed_m_s]
+
+    def warnings(self) -> list[str]:
+        """One line per scan with implausible odometry or a failed registration (at most
+        ``MAX_WARNED_SCANS``, then a count of the rest)."""
+        speeds = self.speeds_m_s()
+        failed = set(self.failed_scans())
+        lines = []
+        for k, step in enumerate(self.steps):
+            reasons = []
+            if speeds[k] > self.max_speed_m_s:
+                dist = float(np.linalg.norm(step.T_prev_curr[:3, 3]))
+                reasons.append(f"moves {dist:.1f} m from the previous scan ({speeds[k]:.0f} m/s, above "
+                               f"mapping.max_speed_m_s = {self.max_speed_m_s:g}): implausible odometry")
+            if step.index in failed:
+                reasons.append(f"registration failed (fitness {step.fitness:.2f}"
+                               + ("" if step.converged else ", not converged") + ")")
+            if reasons:
+                lines.append(f"scan {step.index} at {step.stamp_ns} ns: {'; '.join(reasons)}")
+        if len(lines) > MAX_WARNED_SCANS:
+            lines = [*lines[:MAX_WARNED_SCANS], f"... and {len(lines) - MAX_WARNED_SCANS} more scans like these"]
+        return lines
 
     @property
     def path_length_m(self) -> float:
@@ -55,7 +104,7 @@ class MappingOutcome:
 
     def summary(self) -> dict[str, Any]:
         fitness = [s.fitness for s in self.steps[1:]]
-        failed = [s.index for s in self.steps[1:] if not s.converged or s.fitness < 0.3]
+        failed = self.failed_scans()
         return {
             "lidar_topic": self.lidar_topic,
             "lidar_frame": self.lidar_frame,
@@ -65,6 +114,7 @@ class MappingOutcome:
             "path_length_m": self.path_length_m,
             "mean_fitness": float(np.mean(fitness)) if fitness else None,
             "failed_pairs": failed,
+            "implausible_motion": self.implausible_scans(),
             "degenerate_pairs": [s.index for s in self.steps[1:] if s.degenerate],
             "map_points": int(self.map_points_xyz.shape[0]),
             "used_tf_odometry": self.used_tf_odometry,
@@ -153,7 +203,7 @@ def run_mapping(
     if stage is None:
         stage = functools.partial(prepare_scan, config=registration_config(config))
     pointsets = list(
-        engine.map_frames(LogFrames(paths, config.io.allow_truncated), lidar_topic, stage,
+        engine.map_frames(LogFrames(paths, config.io.allow_truncated, config.io.max_range_m), lidar_topic, stage,
                           batch_size=config.engine.batch_size, ordered=True, desc="scans")
     )  # fmt: skip
     skipped = engine.stats.frames_skipped
@@ -164,12 +214,13 @@ def run_mapping(
     pointsets.sort(key=lambda p: p.stamp_ns)
     try:
         tree: TransformTree | None = load_tf_tree(reader)
-    except InputError:
+    except InputError as err:
+        log.warning("not using /tf odometry: %s", err)
         tree = None
     steps, voxel_map, used_tf = map_pointsets(pointsets, config, tree)
     return MappingOutcome(
         lidar_topic, pointsets[0].frame_id.lstrip("/"), config.mapping.channels, steps,
-        voxel_map.points(), voxel_map.channels(), skipped, used_tf,
+        voxel_map.points(), voxel_map.channels(), skipped, used_tf, config.mapping.max_speed_m_s,
     )  # fmt: skip
 
 

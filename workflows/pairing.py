@@ -21,6 +21,7 @@ from fleetcal.pipeline.errors import ConfigError, DecodeError
 from fleetcal.pipeline.frames import CameraFrame, LidarFrame
 from fleetcal.readers.base import LogReader, RawMessage
 from fleetcal.readers.decode import decode_pointcloud2, stamp_to_ns
+from fleetcal.readers.decode.pointcloud2 import MAX_RANGE_M
 from fleetcal.readers.frames import (
     IMAGE_TYPES,
     POINTCLOUD2,
@@ -123,6 +124,7 @@ def iter_pairs(
     end_ns: int | None = None,
     stats: PairingStats | None = None,
     rectified_topics: Collection[str] = (),
+    max_range_m: float = MAX_RANGE_M,
 ) -> Iterator[tuple[LidarFrame, CameraFrame]]:
     """(LidarFrame, CameraFrame with its CameraModel) pairs, nearest header stamps within ``tolerance_ns``.
 
@@ -154,7 +156,7 @@ def iter_pairs(
     if not pairs:
         return
     yield from _decode_pairs(reader, lidar_topic, camera_topic, camera_type, pairs, stats, start_ns, end_ns,
-                             rectified_topics)
+                             rectified_topics, max_range_m)
 
 
 def _decode_pairs(
@@ -167,6 +169,7 @@ def _decode_pairs(
     start_ns: int | None,
     end_ns: int | None,
     rectified_topics: Collection[str] = (),
+    max_range_m: float = MAX_RANGE_M,
 ) -> Iterator[tuple[LidarFrame, CameraFrame]]:
     lidar_uses: dict[int, int] = {}
     camera_uses: dict[int, int] = {}
@@ -194,7 +197,7 @@ def _decode_pairs(
         try:
             msg = reader.deserialize(raw)
             if is_lidar:
-                lidar_frames[index] = decode_pointcloud2(msg, lidar_topic, raw.log_time_ns)
+                lidar_frames[index] = decode_pointcloud2(msg, lidar_topic, raw.log_time_ns, max_range_m)
             else:
                 frame = decode_camera_image(camera_type, msg, camera_topic, raw.log_time_ns)
                 frame.camera = info.model

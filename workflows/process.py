@@ -227,6 +227,8 @@ def process_log(
                 outcome = mapping.run_mapping(paths, reader, lidar_topic, map_config, engine, stage)
         except mapping.NotEnoughScansError as err:
             warnings.append(f"mapping skipped: {err}")
+        if outcome is not None:
+            warnings.extend(outcome.warnings())
         times["mapping"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()

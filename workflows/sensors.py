@@ -31,17 +31,21 @@ def camera_topics(reader: LogReader) -> list[str]:
 
 
 def resolve_lidar(reader: LogReader, lidar_topic: str | None) -> str:
-    """The given lidar topic, or the only one in the log."""
+    """The given lidar topic, or the only one in the log.
+
+    Raises:
+        InputError: the given topic is not in the log, or the log has no lidar (content: exit 1).
+        UsageError: the log has several lidars and none was named (exit 2).
+    """
     if lidar_topic:
         if lidar_topic not in reader.topics:
             raise InputError(f"lidar topic {lidar_topic} is not in the log")
         return lidar_topic
     found = lidar_topics(reader)
-    if len(found) != 1:
-        what = (
-            "no PointCloud2 topic" if not found else f"{len(found)} PointCloud2 topics ({', '.join(found)})"
-        )
-        raise UsageError(f"the log has {what}; name one with --lidar")
+    if not found:
+        raise InputError("the log has no PointCloud2 topic with messages (no lidar to work on)")
+    if len(found) > 1:
+        raise UsageError(f"the log has {len(found)} PointCloud2 topics ({', '.join(found)}); name one with --lidar")
     return found[0]
 
 

@@ -52,7 +52,9 @@ def decode_image_array(
 
     Raises:
         UnsupportedEncodingError: an encoding outside ``SUPPORTED_ENCODINGS``.
-        DecodeError: step shorter than a row or data shorter than the image.
+        DecodeError: an empty image (width or height 0), step shorter than a row, or data shorter than
+            the image. Sizes are checked against the data before anything is allocated, so a header
+            claiming 100000 x 100000 pixels over a few bytes costs nothing.
     """
     name = _ALIASES.get(encoding, encoding).lower()
     if name not in _CHANNELS:
@@ -61,23 +63,17 @@ def decode_image_array(
         )
     bpp = _CHANNELS[name]
     row_bytes = width * bpp
-    if height < 0 or width < 0:
-        raise DecodeError(f"image size {width}x{height} is negative")
+    if height <= 0 or width <= 0:
+        raise DecodeError(f"image size {width}x{height} is empty")
     if step < row_bytes:
         raise DecodeError(
             f"image step {step} is shorter than a row of {width} {encoding} pixels ({row_bytes} bytes)"
         )
     buf = _payload(data)
-    needed = (height - 1) * step + row_bytes if height and width else 0
+    needed = (height - 1) * step + row_bytes
     if buf.size < needed:
         raise DecodeError(f"image data has {buf.size} bytes, {needed} needed for {width}x{height} {encoding}")
-    rows = np.ndarray((height, row_bytes), dtype=np.uint8, buffer=buf, strides=(step, 1)) if needed else None
-    if rows is None:
-        shape = (height, width, 3) if bpp >= 3 or name.startswith("bayer") else (height, width)
-        dtype = np.uint16 if name == "mono16" else np.uint8
-        return np.zeros(shape, dtype=dtype), "mono16" if name == "mono16" else (
-            "rgb8" if len(shape) == 3 else "mono8"
-        )
+    rows = np.ndarray((height, row_bytes), dtype=np.uint8, buffer=buf, strides=(step, 1))
     if name == "mono8":
         return np.ascontiguousarray(rows), "mono8"
     if name == "mono16":
@@ -95,12 +91,54 @@ def decode_image_array(
     return np.asarray(cv2.cvtColor(np.ascontiguousarray(pixels), cv2.COLOR_BGRA2RGB)), "rgb8"
 
 
+def check_image(msg: Any) -> None:
+    """Check a ``sensor_msgs/Image``'s sizes and encoding against its data without decoding a pixel.
+
+    Raises:
+        UnsupportedEncodingError, DecodeError: as ``decode_image`` would.
+    """
+    name = _ALIASES.get(str(msg.encoding), str(msg.encoding)).lower()
+    if name not in _CHANNELS:
+        raise UnsupportedEncodingError(
+            f"image encoding {msg.encoding!r} is not supported (supported: {', '.join(SUPPORTED_ENCODINGS)})"
+        )
+    height, width, step = int(msg.height), int(msg.width), int(msg.step)
+    row_bytes = width * _CHANNELS[name]
+    if height <= 0 or width <= 0:
+        raise DecodeError(f"image size {width}x{height} is empty")
+    if step < row_bytes:
+        raise DecodeError(
+            f"image step {step} is shorter than a row of {width} {msg.encoding} pixels ({row_bytes} bytes)"
+        )
+    size = _payload(msg.data).size
+    needed = (height - 1) * step + row_bytes
+    if size < needed:
+        raise DecodeError(f"image data has {size} bytes, {needed} needed for {width}x{height} {msg.encoding}")
+
+
+def check_compressed_image(msg: Any) -> None:
+    """Check a ``sensor_msgs/CompressedImage`` without decoding it: a supported format, some data, and a
+    jpeg's end-of-image marker (``decode_compressed_image`` finds the rest).
+
+    Raises:
+        UnsupportedEncodingError, DecodeError: as ``decode_compressed_image`` would for these.
+    """
+    fmt = str(msg.format).lower()
+    if fmt and not any(token in fmt for token in _COMPRESSED_FORMATS):
+        raise UnsupportedEncodingError(f"compressed image format {msg.format!r} is not supported (jpeg, png)")
+    buf = _payload(msg.data)
+    if not buf.size:
+        raise DecodeError(f"compressed image ({msg.format or 'no format'}) has no data")
+    if buf[:2].tobytes() == _JPEG_SOI and _JPEG_EOI not in buf[-_EOI_SEARCH_BYTES:].tobytes():
+        raise DecodeError(f"jpeg image ({buf.size} bytes) is truncated: no end-of-image marker")
+
+
 def decode_image(msg: Any, topic: str, log_time_ns: int = 0) -> CameraFrame:
     """Decode a ``sensor_msgs/Image`` message object (no camera model attached).
 
     Raises:
         UnsupportedEncodingError: encoding other than mono8, mono16, rgb8, bgr8, rgba8, bgra8, bayer_*8.
-        DecodeError: step shorter than a row, or data shorter than height x step.
+        DecodeError: width or height 0, step shorter than a row, or data shorter than height x step.
     """
     image, encoding = decode_image_array(
         msg.data, int(msg.height), int(msg.width), int(msg.step), str(msg.encoding), bool(msg.is_bigendian)

@@ -19,11 +19,13 @@ is read as 1. Unnamed fields are padding.
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
+from fleetcal.pipeline.config import IoConfig
 from fleetcal.pipeline.errors import DecodeError
 from fleetcal.pipeline.frames import LidarFrame
 from fleetcal.readers.decode.common import stamp_to_ns
@@ -40,6 +42,9 @@ POINTFIELD_DTYPES: dict[int, np.dtype[Any]] = {
     8: np.dtype(np.float64),
 }
 """PointField datatype code (1..8) -> numpy dtype."""
+
+MAX_RANGE_M: float = IoConfig.max_range_m
+"""Default largest range of a kept point, metres (``io.max_range_m``; why this value: ``IoConfig``)."""
 
 TIME_FIELDS = ("time", "t", "timestamp", "offset_time")
 """Per-point time fields, in order of preference, normalised into the ``time`` channel."""
@@ -126,16 +131,19 @@ def _time_channel(values: NDArray[Any], stamp_ns: int, copy: bool = True) -> NDA
 
 
 def xyz_numpy(
-    x: NDArray[Any], y: NDArray[Any], z: NDArray[Any]
+    x: NDArray[Any], y: NDArray[Any], z: NDArray[Any], max_range_m: float = MAX_RANGE_M
 ) -> tuple[NDArray[np.floating], NDArray[np.bool_]]:
-    """(points (N_valid, 3), valid (N,)) from x, y, z columns: finite and not all zero (reference path)."""
+    """(points (N_valid, 3), valid (N,)) from x, y, z columns (reference path): valid points are finite,
+    within ``max_range_m`` of the origin (x*x + y*y + z*z in float64) and not all zero."""
     xyz_dtype = np.result_type(x.dtype, y.dtype, z.dtype).newbyteorder("=")
     if xyz_dtype.kind != "f":
         xyz_dtype = np.dtype(np.float32)
-    with np.errstate(invalid="ignore"):
-        valid = np.isfinite(x)
-        valid &= np.isfinite(y)
-        valid &= np.isfinite(z)
+    with np.errstate(invalid="ignore", over="ignore"):
+        range2 = np.square(x, dtype=np.float64)
+        range2 += np.square(y, dtype=np.float64)
+        range2 += np.square(z, dtype=np.float64)
+        valid = range2 <= max_range_m * max_range_m
+        del range2
         nonzero = x != 0
         nonzero |= y != 0
         nonzero |= z != 0
@@ -150,7 +158,8 @@ def xyz_numpy(
 
 
 def _xyz_kernel(
-    msg: Any, data: NDArray[np.uint8], height: int, width: int, row_step: int, point_step: int
+    msg: Any, data: NDArray[np.uint8], height: int, width: int, row_step: int, point_step: int,
+    max_range_m: float = MAX_RANGE_M,
 ) -> tuple[NDArray[np.floating], NDArray[np.bool_]] | None:
     """The numba path for the usual layout (little-endian float32 x, y, z on 4-byte boundaries), else None."""
     offsets = {str(f.name): (int(f.offset), int(f.datatype)) for f in msg.fields if f.name in ("x", "y", "z")}
@@ -170,24 +179,34 @@ def _xyz_kernel(
     valid = np.empty(n, dtype=np.bool_)
     kept = gather_xyz_f32(
         words, height, width, row_step // 4, point_step // 4,
-        offsets["x"][0] // 4, offsets["y"][0] // 4, offsets["z"][0] // 4, points, valid,
+        offsets["x"][0] // 4, offsets["y"][0] // 4, offsets["z"][0] // 4, points, valid, float(max_range_m),
     )  # fmt: skip
     return (points if kept == n else points[:kept].copy()), valid
 
 
-def decode_pointcloud2(msg: Any, topic: str, log_time_ns: int = 0) -> LidarFrame:
-    """Decode a PointCloud2 message object (rosbags, ROS 1 or ROS 2) into a LidarFrame.
+@dataclass(frozen=True)
+class CloudLayout:
+    """The checked layout of a PointCloud2 message (``check_pointcloud2``)."""
 
-    NaN/infinite and all-zero (x = y = z = 0, "no return") points are dropped and counted in
-    ``dropped_points``. Organised clouds (height > 1) keep ``organized_shape`` (height, width) and
-    ``organized_index`` (flat grid index of each kept point). height or width 0 gives an empty frame.
+    height: int
+    width: int
+    point_step: int
+    row_step: int
+    record: np.dtype[Any]
+    """Structured dtype of one point."""
+    counts: dict[str, int]
+    """Count of each named field."""
+    data: NDArray[np.uint8]
+    """The payload, not copied."""
+
+
+def check_pointcloud2(msg: Any) -> CloudLayout:
+    """The layout of a PointCloud2 message, checked against its payload without reading any point.
 
     Raises:
         DecodeError: unknown datatype code, a field past the end of a point, missing x/y/z, a
             row_step shorter than a row, or data shorter than height * width * point_step.
     """
-    stamp_ns = stamp_to_ns(msg.header.stamp)
-    frame_id = str(msg.header.frame_id).lstrip("/")
     height, width = int(msg.height), int(msg.width)
     point_step, row_step = int(msg.point_step), int(msg.row_step)
     n = height * width
@@ -207,6 +226,27 @@ def decode_pointcloud2(msg: Any, topic: str, log_time_ns: int = 0) -> LidarFrame
             f"PointCloud2 data has {data.size} bytes, {needed} needed for {height}x{width}"
             f" points of {point_step} bytes"
         )
+    return CloudLayout(height, width, point_step, row_step, record, counts, data)
+
+
+def decode_pointcloud2(msg: Any, topic: str, log_time_ns: int = 0, max_range_m: float = MAX_RANGE_M) -> LidarFrame:
+    """Decode a PointCloud2 message object (rosbags, ROS 1 or ROS 2) into a LidarFrame.
+
+    NaN/infinite points, points farther than ``max_range_m`` (metres, ``io.max_range_m``: corrupt values
+    such as 1e30) and all-zero (x = y = z = 0, "no return") points are dropped and counted in
+    ``dropped_points``. Organised clouds (height > 1) keep ``organized_shape`` (height, width) and
+    ``organized_index`` (flat grid index of each kept point). height or width 0 gives an empty frame.
+
+    Raises:
+        DecodeError: unknown datatype code, a field past the end of a point, missing x/y/z, a
+            row_step shorter than a row, or data shorter than height * width * point_step.
+    """
+    stamp_ns = stamp_to_ns(msg.header.stamp)
+    frame_id = str(msg.header.frame_id).lstrip("/")
+    layout = check_pointcloud2(msg)
+    height, width, point_step, row_step = layout.height, layout.width, layout.point_step, layout.row_step
+    record, counts, data = layout.record, layout.counts, layout.data
+    n = height * width
     if n:
         grid = np.ndarray((height, width), dtype=record, buffer=data, strides=(row_step, point_step))
     else:
@@ -216,9 +256,9 @@ def decode_pointcloud2(msg: Any, topic: str, log_time_ns: int = 0) -> LidarFrame
         view = grid[name]
         return view.reshape((n, *view.shape[2:]))
 
-    fast = _xyz_kernel(msg, data, height, width, row_step, point_step) if n else None
+    fast = _xyz_kernel(msg, data, height, width, row_step, point_step, max_range_m) if n else None
     if fast is None:
-        points_xyz, valid = xyz_numpy(column("x"), column("y"), column("z"))
+        points_xyz, valid = xyz_numpy(column("x"), column("y"), column("z"), max_range_m)
     else:
         points_xyz, valid = fast
     n_valid = points_xyz.shape[0]

@@ -1,7 +1,7 @@
 """Numba kernel for ``readers.decode.pointcloud2`` (private; call ``decode_pointcloud2``).
 
 One pass over a PointCloud2 payload viewed as float32 words: gather x, y, z of the valid points
-(finite, not all zero) and mark which grid cells they came from.
+(finite, not all zero, within the maximum range) and mark which grid cells they came from.
 """
 
 from __future__ import annotations
@@ -24,13 +24,16 @@ def gather_xyz_f32(
     z_word: int,
     points_out: np.ndarray,
     valid_out: np.ndarray,
+    max_range_m: float,
 ) -> int:
     """Copy valid points' x, y, z into ``points_out`` (N, 3) float32 in grid order; returns how many.
 
     ``words``: the payload as float32 (native order); point (r, c) starts at word
     ``r * row_words + c * step_words``; its x, y, z are ``x_word``/``y_word``/``z_word`` words in.
-    ``valid_out`` (height * width,) bool is set per grid cell.
+    ``valid_out`` (height * width,) bool is set per grid cell. Valid: x*x + y*y + z*z (float64) at most
+    ``max_range_m`` squared (false for NaN and infinity) and not x = y = z = 0.
     """
+    max_r2 = max_range_m * max_range_m
     kept = 0
     for r in range(height):
         row = r * row_words
@@ -39,7 +42,8 @@ def gather_xyz_f32(
             x = words[base + x_word]
             y = words[base + y_word]
             z = words[base + z_word]
-            ok = np.isfinite(x) and np.isfinite(y) and np.isfinite(z) and (x != 0.0 or y != 0.0 or z != 0.0)
+            xd, yd, zd = np.float64(x), np.float64(y), np.float64(z)
+            ok = xd * xd + yd * yd + zd * zd <= max_r2 and (x != 0.0 or y != 0.0 or z != 0.0)
             valid_out[r * width + c] = ok
             if ok:
                 points_out[kept, 0] = x
