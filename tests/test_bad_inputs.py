@@ -637,8 +637,8 @@ def huge_image(msg: Any, i: int) -> Any:
 
 def no_lidar(tmp: Path) -> Path:
     """A log with a camera and tf but no PointCloud2 topic."""
-    from fleetcal.stages.sinks import ros_messages
-    from fleetcal.stages.sinks.log_writer import LogWriter
+    from fleetcal.workflows.sinks import ros_messages
+    from fleetcal.workflows.sinks.log_writer import LogWriter
 
     path = tmp / "camera_only.mcap"
     image = np.full((bi.HEIGHT, bi.WIDTH), 90, np.uint8)
