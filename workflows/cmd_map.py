@@ -52,7 +52,8 @@ def run(args: argparse.Namespace) -> int:
     out_dir = prepare_out_dir(args.out)
     with open_logs(args.logs, config, quiet=args.quiet) as reader:
         lidar = resolve_lidar(reader, args.lidar)
-        with Engine(scheduler=config.engine.scheduler, workers=config.engine.workers, quiet=args.quiet) as engine:
+        workers = mapping.mapping_workers(config)
+        with Engine(scheduler=config.engine.scheduler, workers=workers, quiet=args.quiet) as engine:
             outcome = mapping.run_mapping(args.logs, reader, lidar, config, engine)
     write_config(config, out_dir)
     mapping.write_mapping(outcome, out_dir)

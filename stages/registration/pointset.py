@@ -6,8 +6,9 @@ lazily and cached.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -223,16 +224,18 @@ def prepare_pointset(
         variance = np.maximum(desc.var(axis=0), MIN_CHANNEL_VARIANCE)
     else:
         lam, variance = _descriptor_covariance(desc, config.channels, config.descriptor_variance_scale)
+    pts = np.ascontiguousarray(pts)
+    tree = None
     if config.method == "color_icp":
         cov = np.broadcast_to(np.eye(3) * POINT_TO_POINT_VARIANCE, (pts.shape[0], 3, 3)).copy()
-    elif config.method == "mcgicp":
-        nbrs = knn_indices(pts, config.k_neighbors, workers=config.workers)
-        cov = estimate_covariances(
-            pts, config.k_neighbors, config.epsilon, desc, lam, neighbors=nbrs, workers=config.workers
-        )
     else:
-        cov = estimate_covariances(pts, config.k_neighbors, config.epsilon, workers=config.workers)
-    return PointSet(
+        tree = cKDTree(pts)  # the neighbour search's tree is the registration target's tree too
+        nbrs = knn_indices(pts, config.k_neighbors, tree=tree, workers=config.workers)
+        cov = estimate_covariances(
+            pts, config.k_neighbors, config.epsilon, desc if config.method == "mcgicp" else None, lam,
+            neighbors=nbrs, workers=config.workers,
+        )  # fmt: skip
+    prepared = PointSet(
         points_xyz=np.ascontiguousarray(pts),
         channels=np.ascontiguousarray(desc),
         covariances=cov,
@@ -244,6 +247,52 @@ def prepare_pointset(
         frame_id=frame_id,
         times_s=voxel_times,
     )
+    prepared._tree = tree
+    return prepared
+
+
+def transformed_pointset(scan: PointSet, T_new_scan: NDArray[np.float64]) -> PointSet:
+    """``scan`` moved into another frame: points p' = R p + t, covariances R C R^T (descriptors kept)."""
+    T = np.asarray(T_new_scan, dtype=np.float64)
+    R = T[:3, :3]
+    return dataclasses.replace(
+        scan,
+        points_xyz=np.ascontiguousarray(scan.points_xyz @ R.T + T[:3, 3]),
+        covariances=np.ascontiguousarray(np.matmul(np.matmul(R, scan.covariances), R.T)),
+    )
+
+
+def merge_pointsets(scans: Sequence[PointSet], config: RegistrationConfig, frame_id: str = "map") -> PointSet:
+    """One PointSet of several prepared scans already in a common frame, voxel-downsampled at the
+    registration voxel size: positions, descriptors and covariances are averaged per voxel (a mean of
+    positive definite covariances stays positive definite); Lambda and the channel variances are those
+    of the merged descriptors. No neighbour search: the covariances are the scans' own.
+
+    Raises:
+        InputError: no scans, or scans prepared with different channels.
+    """
+    if not scans:
+        raise InputError("no scans to merge")
+    names = scans[0].channel_names
+    if any(s.channel_names != names for s in scans):
+        raise InputError("scans to merge were prepared with different channels")
+    n = len(names)
+    points = np.concatenate([s.points_xyz for s in scans])
+    columns = np.concatenate(
+        [np.concatenate([s.channels, s.covariances.reshape(-1, 9)], axis=1) for s in scans]
+    )
+    points, columns, _, _ = voxel_downsample_capped(points, config.voxel_size_m, columns)
+    desc = np.ascontiguousarray(columns[:, :n])
+    cov = np.ascontiguousarray(columns[:, n:].reshape(-1, 3, 3))
+    if config.descriptor_covariance is not None and n > 0:
+        lam = np.atleast_2d(np.asarray(config.descriptor_covariance, dtype=np.float64))
+        variance = np.maximum(desc.var(axis=0), MIN_CHANNEL_VARIANCE)
+    else:
+        lam, variance = _descriptor_covariance(desc, config.channels, config.descriptor_variance_scale)
+    return PointSet(
+        points_xyz=np.ascontiguousarray(points), channels=desc, covariances=cov, channel_names=names,
+        descriptor_covariance=lam, channel_variance=variance, stamp_ns=scans[-1].stamp_ns, frame_id=frame_id,
+    )  # fmt: skip
 
 
 def _time_column(times_s: NDArray[np.generic] | None, valid: NDArray[np.bool_]) -> NDArray[np.float64] | None:
