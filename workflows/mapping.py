@@ -27,7 +27,7 @@ from fleetcal.pipeline.frames import LidarFrame
 from fleetcal.pipeline.transforms import TransformTree, root_of, to_quat, translation_error_m
 from fleetcal.readers.base import LogReader
 from fleetcal.readers.frames import load_tf_tree
-from fleetcal.stages.registration.gicp import RegistrationConfig
+from fleetcal.stages.registration.config import RegistrationConfig
 from fleetcal.stages.registration.odometry import OdometryStep, VoxelMap, run_odometry
 from fleetcal.stages.registration.pointset import PointSet, pointset_from_frame
 from fleetcal.stages.sinks import report

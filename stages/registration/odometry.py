@@ -30,8 +30,9 @@ from fleetcal.pipeline.errors import ConfigError, InputError
 from fleetcal.pipeline.frames import LidarFrame
 from fleetcal.pipeline.point_times import classify_point_times
 from fleetcal.pipeline.transforms import apply, invert, rotation_error_deg, translation_error_m
+from fleetcal.stages.registration.config import RegistrationConfig
 from fleetcal.stages.registration.deskew import deskew_points, deskew_pointset, sweep_twist, sweep_usable
-from fleetcal.stages.registration.gicp import RegistrationConfig, register
+from fleetcal.stages.registration.gicp import register
 from fleetcal.stages.registration.pointset import (
     PointSet,
     merge_pointsets,

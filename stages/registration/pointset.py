@@ -10,7 +10,6 @@ import dataclasses
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -18,21 +17,11 @@ from scipy.spatial import cKDTree
 
 from fleetcal.pipeline.errors import ConfigError, InputError
 from fleetcal.pipeline.frames import LidarFrame
+from fleetcal.stages.registration.config import CHANNEL_MODES, RegistrationConfig
 from fleetcal.stages.registration.covariances import estimate_covariances, knn_indices
 from fleetcal.stages.registration.voxel import voxel_downsample_capped
 
-if TYPE_CHECKING:
-    from fleetcal.stages.registration.gicp import RegistrationConfig
-
 log = logging.getLogger(__name__)
-
-CHANNEL_MODES: dict[str, tuple[str, ...]] = {
-    "none": (),
-    "intensity": ("intensity",),
-    "color": ("r", "g", "b"),
-    "combined": ("intensity", "r", "g", "b"),
-}
-"""Descriptor channels of each channel mode, in column order."""
 
 MAX_PREPARED_POINTS = 500_000
 """Most points a prepared scan keeps: a scan still larger after voxel downsampling is downsampled
