@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 from fleetcal.pipeline.errors import ConfigError, InputError
 from fleetcal.pipeline.frames import LidarFrame
 from fleetcal.stages.registration.config import CHANNEL_MODES, RegistrationConfig
-from fleetcal.stages.registration.covariances import estimate_covariances, knn_indices
+from fleetcal.stages.registration.covariances import build_kdtree, estimate_covariances, knn_indices
 from fleetcal.stages.registration.voxel import voxel_downsample_capped
 
 log = logging.getLogger(__name__)
@@ -85,7 +85,7 @@ class PointSet:
     def tree(self) -> cKDTree:
         """kd-tree over ``points_xyz`` (built on first use)."""
         if self._tree is None:
-            self._tree = cKDTree(self.points_xyz)
+            self._tree = build_kdtree(self.points_xyz)
         return self._tree
 
     def scaled_descriptors(self, channel_alpha: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -98,7 +98,7 @@ class PointSet:
         tree = self._feature_trees.get(key)
         if tree is None:
             features = np.concatenate([self.points_xyz, self.scaled_descriptors(channel_alpha)], axis=1)
-            tree = cKDTree(features)
+            tree = build_kdtree(features)
             self._feature_trees[key] = tree
         return tree
 
@@ -218,7 +218,7 @@ def prepare_pointset(
     if config.method == "color_icp":
         cov = np.broadcast_to(np.eye(3) * POINT_TO_POINT_VARIANCE, (pts.shape[0], 3, 3)).copy()
     else:
-        tree = cKDTree(pts)  # the neighbour search's tree is the registration target's tree too
+        tree = build_kdtree(pts)  # the neighbour search's tree is the registration target's tree too
         nbrs = knn_indices(pts, config.k_neighbors, tree=tree, workers=config.workers)
         cov = estimate_covariances(
             pts, config.k_neighbors, config.epsilon, desc if config.method == "mcgicp" else None, lam,
