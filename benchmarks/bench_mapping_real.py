@@ -171,6 +171,14 @@ def _subprocess(cmd: list[str], threads: int) -> float:
     return wall
 
 
+def run_baseline(fleetcal: str, channels: str, log: Path, threads: int, work: Path, n_scans: int) -> Run:
+    """Another fleetcal installation's ``fleetcal map`` (amortised only), e.g. the main branch's."""
+    out_dir = work / f"baseline_{channels}"
+    wall = _subprocess([fleetcal, "map", str(log), "--channels", channels, "--out", str(out_dir), "--quiet"], threads)
+    nan = float("nan")
+    return Run(f"baseline {channels}", _trajectory(out_dir / "trajectory.parquet"), nan, wall / n_scans, nan)
+
+
 def run_method(method: str, log: Path, threads: int, voxel_m: float, work: Path) -> Run:
     """Steady state from an in-process worker; amortised from a fresh process (the CLI for fleetcal)."""
     out = work / f"{method.replace(' ', '_')}.npz"
@@ -232,17 +240,63 @@ def accuracy(est: NDArray[np.float64], true: NDArray[np.float64]) -> dict[str, f
     }
 
 
+def memory_worker(n_scans: int) -> None:
+    """Peak RSS of ``map_frames`` over ``n_scans`` synthetic scans of one room driven around in circles
+    (5000 points each, 10 Hz, 0.3 m and 3 deg per scan): the map stops growing after the first lap, so
+    memory that still grows is held per scan."""
+    import resource
+
+    from fleetcal.pipeline.config import Config
+    from fleetcal.pipeline.frames import LidarFrame
+    from fleetcal.pipeline.transforms import apply, from_xyz_rpy, invert
+    from fleetcal.workflows.mapping import map_frames
+
+    rng = np.random.default_rng(0)
+    boxes = [((-20, -20, 0), (20, -19.9, 4)), ((-20, 19.9, 0), (20, 20, 4)), ((-20, -20, 0), (-19.9, 20, 4)),
+             ((19.9, -20, 0), (20, 20, 4)), ((-20, -20, -0.05), (20, 20, 0.0)), ((-3, -3, 0), (3, 3, 2))]  # fmt: skip
+    walls = [rng.uniform(lo, hi, (6000, 3)) for lo, hi in boxes]
+    world = np.concatenate(walls)
+
+    def scans() -> Any:
+        for k in range(n_scans):
+            angle = np.radians(3.0 * k)
+            T_world_lidar = from_xyz_rpy(6 * np.cos(angle), 6 * np.sin(angle), 1.5, 0, 0, 90 + 3.0 * k)
+            pick = rng.choice(world.shape[0], 5000, replace=False)
+            yield LidarFrame(1_000_000_000 + k * 100_000_000, "/lidar", "lidar",
+                             apply(invert(T_world_lidar), world[pick]).astype(np.float32), {})  # fmt: skip
+
+    config = Config()
+    config.mapping.channels = "none"  # type: ignore[assignment]
+    steps, voxel_map, _ = map_frames(scans(), config)
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(json.dumps({"scans": len(steps), "peak_rss_mb": peak_mb, "map_voxels": voxel_map.n_voxels}))
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--log", type=Path, default=LOG)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--voxel", type=float, default=0.25, help="small_gicp voxel, m (fleetcal's default)")
     parser.add_argument("--methods", default=",".join(METHODS))
+    parser.add_argument("--baseline", metavar="FLEETCAL",
+                        help="another installation's fleetcal executable to time beside (amortised only)")
+    parser.add_argument("--memory", type=int, nargs="*", metavar="SCANS",
+                        help="instead: peak memory of mapping synthetic drives of these lengths (e.g. 200 2000)")
+    parser.add_argument("--memory-worker", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     parser.add_argument("--out", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.worker:
         worker(args.worker, args.log, args.threads, args.voxel, args.out)
+        return 0
+    if args.memory_worker:
+        memory_worker(args.memory_worker)
+        return 0
+    if args.memory:
+        for n in args.memory:
+            proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--memory-worker", str(n)],
+                                  capture_output=True, text=True, check=True)  # fmt: skip
+            print(proc.stdout.strip())
         return 0
     if not args.log.exists():
         print(f"error: {args.log} not found (../shared/data)", file=sys.stderr)
@@ -255,6 +309,9 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for method in args.methods.split(","):
             runs.append(run_method(method, args.log, args.threads, args.voxel, Path(tmp)))
+        if args.baseline:
+            for channels in ("none", "intensity"):
+                runs.append(run_baseline(args.baseline, channels, args.log, args.threads, Path(tmp), true.shape[0]))
     kiss = next((r for r in runs if r.method == "KISS-ICP"), None)
     print(f"{args.log.name}: {true.shape[0]} scans, path {accuracy(true, true)['path_m']:.1f} m, "
           f"threads {args.threads}, {os.cpu_count()} cores")  # fmt: skip
