@@ -12,6 +12,9 @@ EXAMPLES = """examples:
   fleetcal map drive.mcap --out map/                         # lidar topic detected, intensity channel
   fleetcal map drive.bag --lidar /velodyne_points --channels none --out map/    # plain GICP
   fleetcal map rgbd.mcap --channels color --voxel 0.02 --out map/
+
+One recording is mapped in-process (scans prepared on a second thread while the previous one is
+registered) unless --workers or --scheduler asks for dask workers.
 """
 
 

@@ -5,10 +5,11 @@ starting from a constant-velocity guess (the previous relative motion) or from e
 odometry poses, either
 
 - ``scan_to_map`` (default): against a local map made of the last ``local_map_keyframes`` keyframes'
-  prepared points, in the map frame, voxel-downsampled together and given fresh covariances (GICP
-  eq. 4-5 or MC-GICP eq. 6-10) on the merged cloud. A scan becomes a keyframe when it has moved
+  prepared points and covariances (GICP eq. 4-5 or MC-GICP eq. 6-10, rotated into the map frame),
+  voxel-downsampled together with points, descriptors and covariances averaged per voxel (no
+  neighbour search on the merged cloud). A scan becomes a keyframe when it has moved
   ``keyframe_distance_m`` or turned ``keyframe_rotation_deg`` since the last one; the local map is
-  rebuilt only then, so a step costs one registration plus an amortised O(window) rebuild. Matching
+  rebuilt only then, so a step costs one registration plus an amortised O(window) merge. Matching
   against several earlier viewpoints removes the bias of scan-to-scan matching towards zero motion
   (the sensor-fixed ring pattern of the previous scan) and drift accumulates per keyframe, not per scan.
 - ``scan_to_scan``: against the previous scan.
