@@ -9,6 +9,7 @@ Run::
 
     .venv/bin/python benchmarks/bench_mapping.py --scene corridor --scans 50
     .venv/bin/python benchmarks/bench_mapping.py --scene street --scans 100
+    .venv/bin/python benchmarks/bench_mapping.py --real --threads 2   # real KITTI drive vs KISS-ICP, small_gicp
 
 Prints, per method and odometry mode: final drift (|final position error| / path length), the KITTI-style
 segment drift (``relative_translation_drift``), the along-track error and the time per scan.
@@ -165,6 +166,10 @@ def evaluate(seq: Sequence, label: str, method: str, channels: str, mode: str, v
 
 
 def main() -> None:
+    if "--real" in sys.argv[1:]:
+        from bench_mapping_real import main as main_real
+
+        raise SystemExit(main_real([a for a in sys.argv[1:] if a != "--real"]))
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )

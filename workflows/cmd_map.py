@@ -12,6 +12,9 @@ EXAMPLES = """examples:
   fleetcal map drive.mcap --out map/                         # lidar topic detected, intensity channel
   fleetcal map drive.bag --lidar /velodyne_points --channels none --out map/    # plain GICP
   fleetcal map rgbd.mcap --channels color --voxel 0.02 --out map/
+
+One recording is mapped in-process (scans prepared on a second thread while the previous one is
+registered) unless --workers or --scheduler asks for dask workers.
 """
 
 
@@ -53,7 +56,8 @@ def run(args: argparse.Namespace) -> int:
     out_dir = prepare_out_dir(args.out, MAP_OUTPUTS)
     with open_logs(args.logs, config, quiet=args.quiet) as reader:
         lidar = resolve_lidar(reader, args.lidar)
-        with Engine(scheduler=config.engine.scheduler, workers=config.engine.workers, quiet=args.quiet,
+        workers = mapping.mapping_workers(config)
+        with Engine(scheduler=config.engine.scheduler, workers=workers, quiet=args.quiet,
                     warmups=STAGE_WARMUPS) as engine:
             outcome = mapping.run_mapping(args.logs, reader, lidar, config, engine)
     write_config(config, out_dir)

@@ -1,17 +1,21 @@
 """Recipe: lidar odometry and a voxel map with MC-GICP over one lidar topic.
 
-Per-frame work (downsampling, covariances, descriptors) runs on the dask engine in log order;
-the odometry chain (each scan against the previous one) and the voxel map are the aggregation.
+Per-frame work (decoding, downsampling, covariances, descriptors) runs on the engine in log order; the
+odometry chain (each scan against the local map) and the voxel map consume the prepared scans as they
+arrive. In-process, the preparation runs on a background thread one or two scans ahead.
 """
 
 from __future__ import annotations
 
 import functools
+import itertools
 import logging
-from collections.abc import Callable, Iterable, Sequence
+import queue
+import threading
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -23,7 +27,7 @@ from fleetcal.pipeline.frames import LidarFrame
 from fleetcal.pipeline.transforms import TransformTree, root_of, to_quat, translation_error_m
 from fleetcal.readers.base import LogReader
 from fleetcal.readers.frames import load_tf_tree
-from fleetcal.stages.registration.gicp import RegistrationConfig
+from fleetcal.stages.registration.config import RegistrationConfig
 from fleetcal.stages.registration.odometry import OdometryStep, VoxelMap, run_odometry
 from fleetcal.stages.registration.pointset import PointSet, pointset_from_frame
 from fleetcal.stages.sinks import report
@@ -31,6 +35,7 @@ from fleetcal.stages.sinks.tables import TRAJECTORY_SCHEMA, map_table, write_row
 from fleetcal.workflows.frame_sources import LogFrames
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 CHANNEL_MODES = ("none", "intensity", "color", "combined")
 MIN_FITNESS = 0.3
@@ -150,20 +155,71 @@ def prepare_scan(frame: LidarFrame, config: RegistrationConfig) -> PointSet:
     return pointset_from_frame(frame, config)
 
 
-def tf_odometry(
-    tree: TransformTree | None, lidar_frame: str, stamps_ns: Sequence[int]
-) -> list[NDArray[np.float64]] | None:
-    """``T_odom_lidar`` per scan from the log's dynamic tf, or None when the log has no odometry."""
+def tf_odometry(tree: TransformTree | None, lidar_frame: str) -> Callable[[int], NDArray[np.float64] | None] | None:
+    """``T_odom_lidar`` at a stamp (ns) from the log's dynamic tf, or None when the log has no odometry.
+
+    The returned function gives None at a stamp the tf does not cover (a warning is logged once).
+    """
     if tree is None or lidar_frame not in tree.frames:
         return None
     world = root_of(tree, lidar_frame)
     if world == lidar_frame or tree.is_static_path(world, lidar_frame):
         return None
+    warned = False
+
+    def lookup(stamp_ns: int) -> NDArray[np.float64] | None:
+        nonlocal warned
+        try:
+            return tree.lookup(world, lidar_frame, stamp_ns)
+        except TransformError as err:
+            if not warned:
+                log.warning("no /tf odometry at some scans (constant-velocity guess there): %s", err)
+                warned = True
+            return None
+
+    return lookup
+
+
+def prefetched(items: Iterable[T], depth: int = 2) -> Iterator[T]:
+    """``items`` produced on a background thread, up to ``depth`` ahead of the consumer.
+
+    Decoding and scan preparation (numba kernels without the GIL, kd-tree builds, NumPy sorts) then
+    run on the second core while the consumer registers the previous scan. An exception of the
+    producer is raised in the consumer; a consumer that stops early stops the producer.
+    """
+    buffer: queue.Queue[tuple[str, Any]] = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+
+    def put(entry: tuple[str, Any]) -> bool:
+        while not stop.is_set():
+            try:
+                buffer.put(entry, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def produce() -> None:
+        try:
+            for item in items:
+                if not put(("item", item)):
+                    return
+            put(("end", None))
+        except BaseException as err:  # handed to the consumer, raised there
+            put(("error", err))
+
+    thread = threading.Thread(target=produce, name="fleetcal-prefetch", daemon=True)
+    thread.start()
     try:
-        return [tree.lookup(world, lidar_frame, s) for s in stamps_ns]
-    except TransformError as err:
-        log.warning("not using /tf odometry: %s", err)
-        return None
+        while True:
+            kind, value = buffer.get()
+            if kind == "end":
+                return
+            if kind == "error":
+                raise value
+            yield value
+    finally:
+        stop.set()
 
 
 def map_pointsets(
@@ -171,15 +227,37 @@ def map_pointsets(
     config: Config,
     tree: TransformTree | None = None,
 ) -> tuple[list[OdometryStep], VoxelMap, bool]:
-    """Odometry + voxel map over prepared scans (in time order)."""
-    scans = list(pointsets)
+    """Odometry + voxel map over prepared scans in time order, consumed one at a time (memory does not
+    grow with the number of scans beyond the trajectory and the map)."""
+    stream = iter(pointsets)
+    first = next(stream, None)
     reg = registration_config(config)
-    lidar_frame = scans[0].frame_id.lstrip("/") if scans else ""
-    initial = tf_odometry(tree, lidar_frame, [s.stamp_ns for s in scans]) if config.mapping.use_tf_odometry else None
     voxel_map = VoxelMap(config.mapping.map_voxel_m)
-    steps = run_odometry(scans, reg, initial_motion=initial, voxel_map=voxel_map, deskew=config.mapping.deskew,
-                         first_motion_max_m=config.mapping.first_motion_max_m)
-    return steps, voxel_map, initial is not None
+    if first is None:
+        return [], voxel_map, False
+    odometry = tf_odometry(tree, first.frame_id.lstrip("/")) if config.mapping.use_tf_odometry else None
+    steps = run_odometry(itertools.chain([first], stream), reg, initial_motion=odometry, voxel_map=voxel_map,
+                         deskew=config.mapping.deskew, first_motion_max_m=config.mapping.first_motion_max_m)
+    return steps, voxel_map, odometry is not None
+
+
+def map_frames(
+    frames: Iterable[LidarFrame], config: Config, tree: TransformTree | None = None
+) -> tuple[list[OdometryStep], VoxelMap, bool]:
+    """``map_pointsets`` over decoded scans, each prepared (``prepare_scan``) on a background thread
+    while the previous one is registered."""
+    reg = registration_config(config)
+    return map_pointsets(prefetched(prepare_scan(frame, reg) for frame in frames), config, tree)
+
+
+def mapping_workers(config: Config) -> int | None:
+    """Engine workers for mapping one recording: in-process (0) unless a scheduler or a worker count is
+    configured. The odometry chain is serial and the scan preparation overlaps it on a thread
+    (``prefetched``), so a local cluster adds only its start-up (KITTI 00, 51 scans, 2 cores: see
+    docs/performance.md)."""
+    if config.engine.scheduler is not None or config.engine.workers is not None:
+        return config.engine.workers
+    return 0
 
 
 class NotEnoughScansError(InputError):
@@ -194,34 +272,44 @@ def run_mapping(
     engine: Engine,
     stage: Callable[[LidarFrame], PointSet] | None = None,
 ) -> MappingOutcome:
-    """Prepare every scan on the engine (log order) with ``stage`` (default ``prepare_scan``), then chain
-    the odometry and build the map.
+    """Prepare every scan on the engine (log order) with ``stage`` (default ``prepare_scan``) and chain the
+    odometry and the map over the prepared scans as they arrive (in-process: prepared on a background
+    thread, ``prefetched``).
 
     Raises:
         NotEnoughScansError: fewer than two scans survive the stage.
     """
     if stage is None:
         stage = functools.partial(prepare_scan, config=registration_config(config))
-    pointsets = list(
-        engine.map_frames(LogFrames(paths, config.io.allow_truncated, config.io.max_range_m), lidar_topic, stage,
-                          batch_size=config.engine.batch_size, ordered=True, desc="scans")
-    )  # fmt: skip
-    skipped = engine.stats.frames_skipped
-    if len(pointsets) < 2:
-        reasons = ", ".join(engine.stats.skip_examples[:2])
-        raise NotEnoughScansError(f"need at least 2 usable scans on {lidar_topic} to map, got {len(pointsets)}"
-                         + (f" ({reasons})" if reasons else ""))  # fmt: skip
-    pointsets.sort(key=lambda p: p.stamp_ns)
     try:
         tree: TransformTree | None = load_tf_tree(reader)
     except InputError as err:
         log.warning("not using /tf odometry: %s", err)
         tree = None
-    steps, voxel_map, used_tf = map_pointsets(pointsets, config, tree)
-    return MappingOutcome(
-        lidar_topic, pointsets[0].frame_id.lstrip("/"), config.mapping.channels, steps,
-        voxel_map.points(), voxel_map.channels(), skipped, used_tf, config.mapping.max_speed_m_s,
+    pointsets: Iterable[PointSet] = engine.map_frames(
+        LogFrames(paths, config.io.allow_truncated, config.io.max_range_m), lidar_topic, stage,
+        batch_size=config.engine.batch_size, ordered=True, desc="scans",
     )  # fmt: skip
+    if engine.in_process:
+        pointsets = prefetched(pointsets)
+    frame_id: list[str] = []
+    steps, voxel_map, used_tf = map_pointsets(_noting_frame(pointsets, frame_id), config, tree)
+    if len(steps) < 2:
+        reasons = ", ".join(engine.stats.skip_examples[:2])
+        raise NotEnoughScansError(f"need at least 2 usable scans on {lidar_topic} to map, got {len(steps)}"
+                         + (f" ({reasons})" if reasons else ""))  # fmt: skip
+    return MappingOutcome(
+        lidar_topic, frame_id[0], config.mapping.channels, steps,
+        voxel_map.points(), voxel_map.channels(), engine.stats.frames_skipped, used_tf, config.mapping.max_speed_m_s,
+    )  # fmt: skip
+
+
+def _noting_frame(pointsets: Iterable[PointSet], frame_id: list[str]) -> Iterator[PointSet]:
+    """The pointsets, recording the first one's frame id (without a leading slash) in ``frame_id``."""
+    for pointset in pointsets:
+        if not frame_id:
+            frame_id.append(pointset.frame_id.lstrip("/"))
+        yield pointset
 
 
 def trajectory_rows(steps: Sequence[OdometryStep]) -> list[dict[str, Any]]:

@@ -8,8 +8,9 @@ Typical use::
     result = register(source, target, np.eye(4), config)   # result.T_target_source
 """
 
+from fleetcal.stages.registration.config import RegistrationConfig
 from fleetcal.stages.registration.covariances import estimate_covariances, knn_indices
-from fleetcal.stages.registration.gicp import RegistrationConfig, RegistrationResult, register
+from fleetcal.stages.registration.gicp import RegistrationResult, register
 from fleetcal.stages.registration.odometry import (
     ODOMETRY_MODES,
     LocalMap,

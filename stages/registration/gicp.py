@@ -14,109 +14,19 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from fleetcal.pipeline.errors import ConfigError, InputError, TransformError
+from fleetcal.pipeline.errors import InputError, TransformError
 from fleetcal.pipeline.transforms import exp_se3, is_rigid
+from fleetcal.stages.registration.config import CHANNEL_MODES, RegistrationConfig
 from fleetcal.stages.registration.gicp_kernels import (
     ROBUST_CAUCHY,
     ROBUST_HUBER,
     ROBUST_NONE,
     linearize_kernel,
 )
-from fleetcal.stages.registration.pointset import CHANNEL_MODES, PointSet
+from fleetcal.stages.registration.pointset import PointSet
 
-METHODS = ("gicp", "mcgicp", "color_icp")
 ROBUST_KERNELS = {"none": ROBUST_NONE, "huber": ROBUST_HUBER, "cauchy": ROBUST_CAUCHY}
-OPTIMIZERS = ("gauss_newton", "levenberg_marquardt")
 MIN_CORRESPONDENCES = 6
-
-
-@dataclass
-class RegistrationConfig:
-    """Settings of one registration (and of the scan preparation it needs).
-
-    Attributes:
-        method: ``gicp``, ``mcgicp`` or ``color_icp``.
-        channels: descriptor channels, ``none`` | ``intensity`` | ``color`` | ``combined``.
-        voxel_size_m: voxel-grid downsampling before covariances (0: none).
-        k_neighbors: neighbours for each covariance (itself included).
-        epsilon: variance along the surface normal (plane model, eq. 4).
-        max_correspondence_distance_m: correspondences farther apart (in the search space) are ignored.
-        max_iterations: Gauss-Newton iterations (one correspondence search each) at most.
-        rotation_eps_deg: converged when the update rotates less than this...
-        translation_eps_m: ...and translates less than this.
-        robust_kernel: ``none``, ``huber`` or ``cauchy`` on the Mahalanobis distance.
-        robust_scale: kernel width (Mahalanobis units).
-        optimizer: ``gauss_newton`` or ``levenberg_marquardt``.
-        lm_initial_lambda: Levenberg-Marquardt damping at the start.
-        channel_weight_m: kd-tree weight alpha_d = channel_weight_m^2 / var_d: one standard deviation
-            of a descriptor counts as this many metres in the (3 + n)-D correspondence search.
-        channel_alpha: explicit alpha per descriptor channel (overrides ``channel_weight_m``).
-        descriptor_variance_scale: Lambda = scale * (descriptor covariance of the scan), eq. 7.
-        descriptor_covariance: explicit Lambda (n x n), overrides the estimate.
-        degeneracy_threshold: flag degenerate when min/max eigenvalue of the 6x6 Hessian is below it.
-        workers: threads for kd-tree queries (-1: all cores).
-    """
-
-    method: str = "gicp"
-    channels: str = "none"
-    voxel_size_m: float = 0.25
-    k_neighbors: int = 20
-    epsilon: float = 1e-3
-    max_correspondence_distance_m: float = 1.0
-    max_iterations: int = 64
-    rotation_eps_deg: float = 0.1
-    translation_eps_m: float = 1e-3
-    robust_kernel: str = "none"
-    robust_scale: float = 1.0
-    optimizer: str = "gauss_newton"
-    lm_initial_lambda: float = 1e-4
-    channel_weight_m: float = 0.1
-    channel_alpha: tuple[float, ...] | None = None
-    descriptor_variance_scale: float = 1.0
-    descriptor_covariance: tuple[tuple[float, ...], ...] | None = None
-    degeneracy_threshold: float = 1e-3
-    workers: int = -1
-
-    def __post_init__(self) -> None:
-        if self.method not in METHODS:
-            raise ConfigError(
-                f"unknown registration method {self.method!r}; expected one of {', '.join(METHODS)}"
-            )
-        if self.channels not in CHANNEL_MODES:
-            raise ConfigError(
-                f"unknown channel mode {self.channels!r}; expected one of {', '.join(CHANNEL_MODES)}"
-            )
-        if self.method in ("mcgicp", "color_icp") and self.channels == "none":
-            raise ConfigError(
-                f"method {self.method!r} needs descriptor channels (intensity, color or combined)"
-            )
-        if self.robust_kernel not in ROBUST_KERNELS:
-            raise ConfigError(
-                f"unknown robust kernel {self.robust_kernel!r}; expected one of {', '.join(ROBUST_KERNELS)}"
-            )
-        if self.optimizer not in OPTIMIZERS:
-            raise ConfigError(
-                f"unknown optimizer {self.optimizer!r}; expected one of {', '.join(OPTIMIZERS)}"
-            )
-        positive = {
-            "epsilon": self.epsilon,
-            "max_correspondence_distance_m": self.max_correspondence_distance_m,
-            "robust_scale": self.robust_scale,
-            "channel_weight_m": self.channel_weight_m,
-            "descriptor_variance_scale": self.descriptor_variance_scale,
-        }
-        for name, value in positive.items():
-            if not (np.isfinite(value) and value > 0):
-                raise ConfigError(f"{name} must be a finite number > 0, got {value}")
-        if self.k_neighbors < 3:
-            raise ConfigError(f"k_neighbors must be >= 3, got {self.k_neighbors}")
-        if self.max_iterations < 1:
-            raise ConfigError(f"max_iterations must be >= 1, got {self.max_iterations}")
-        if self.voxel_size_m < 0:
-            raise ConfigError(f"voxel_size_m must be >= 0, got {self.voxel_size_m}")
-        n = len(CHANNEL_MODES[self.channels])
-        if self.channel_alpha is not None and len(self.channel_alpha) != n:
-            raise ConfigError(f"channel_alpha needs {n} values for channels {self.channels!r}")
 
 
 @dataclass

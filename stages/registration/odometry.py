@@ -5,10 +5,11 @@ starting from a constant-velocity guess (the previous relative motion) or from e
 odometry poses, either
 
 - ``scan_to_map`` (default): against a local map made of the last ``local_map_keyframes`` keyframes'
-  prepared points, in the map frame, voxel-downsampled together and given fresh covariances (GICP
-  eq. 4-5 or MC-GICP eq. 6-10) on the merged cloud. A scan becomes a keyframe when it has moved
+  prepared points and covariances (GICP eq. 4-5 or MC-GICP eq. 6-10, rotated into the map frame),
+  voxel-downsampled together with points, descriptors and covariances averaged per voxel (no
+  neighbour search on the merged cloud). A scan becomes a keyframe when it has moved
   ``keyframe_distance_m`` or turned ``keyframe_rotation_deg`` since the last one; the local map is
-  rebuilt only then, so a step costs one registration plus an amortised O(window) rebuild. Matching
+  rebuilt only then, so a step costs one registration plus an amortised O(window) merge. Matching
   against several earlier viewpoints removes the bias of scan-to-scan matching towards zero motion
   (the sensor-fixed ring pattern of the previous scan) and drift accumulates per keyframe, not per scan.
 - ``scan_to_scan``: against the previous scan.
@@ -19,7 +20,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections import deque
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -30,9 +31,15 @@ from fleetcal.pipeline.errors import ConfigError, InputError
 from fleetcal.pipeline.frames import LidarFrame
 from fleetcal.pipeline.point_times import classify_point_times
 from fleetcal.pipeline.transforms import apply, invert, rotation_error_deg, translation_error_m
+from fleetcal.stages.registration.config import RegistrationConfig
 from fleetcal.stages.registration.deskew import deskew_points, deskew_pointset, sweep_twist, sweep_usable
-from fleetcal.stages.registration.gicp import RegistrationConfig, register
-from fleetcal.stages.registration.pointset import PointSet, pointset_from_frame, prepare_pointset
+from fleetcal.stages.registration.gicp import register
+from fleetcal.stages.registration.pointset import (
+    PointSet,
+    merge_pointsets,
+    pointset_from_frame,
+    transformed_pointset,
+)
 from fleetcal.stages.registration.voxel import voxel_downsample, voxel_keys
 
 log = logging.getLogger(__name__)
@@ -82,7 +89,9 @@ class VoxelMap:
     """A voxel grid accumulating points in the map frame; each voxel keeps the mean position and channels.
 
     Channels (``intensity`` float, ``r``, ``g``, ``b`` uint8) are averaged; ``channels()`` returns
-    only those that every inserted scan carried.
+    only those that every inserted scan carried. Inserted scans are reduced to their own voxels and
+    queued; the queue is merged into the grid when it holds as many voxels as the grid (and on every
+    read), so a scan costs O(its points) amortised instead of a pass over the whole map.
     """
 
     def __init__(self, voxel_size_m: float) -> None:
@@ -92,10 +101,13 @@ class VoxelMap:
         self._keys = np.zeros(0, dtype=np.int64)
         self._sums = np.zeros((0, 3 + len(MAP_CHANNELS)))
         self._counts = np.zeros(0, dtype=np.int64)
+        self._pending: list[tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64]]] = []
+        self._pending_voxels = 0
         self._present: set[str] | None = None
 
     @property
     def n_voxels(self) -> int:
+        self._merge_pending()
         return int(self._keys.shape[0])
 
     def insert(
@@ -118,26 +130,31 @@ class VoxelMap:
         values = values[finite & np.all(np.isfinite(values), axis=1)]
         if values.shape[0] == 0:
             return
-        keys = np.concatenate([self._keys, voxel_keys(values[:, :3], self.voxel_size_m)])
-        sums = np.concatenate([self._sums, values])
-        counts = np.concatenate([self._counts, np.ones(values.shape[0], dtype=np.int64)])
-        unique, inverse = np.unique(keys, return_inverse=True)
-        self._keys = unique
-        self._counts = np.bincount(inverse, weights=counts, minlength=unique.shape[0]).astype(np.int64)
-        self._sums = np.stack(
-            [
-                np.bincount(inverse, weights=sums[:, c], minlength=unique.shape[0])
-                for c in range(sums.shape[1])
-            ],
-            axis=1,
+        keys, sums, counts = _reduce_by_key(voxel_keys(values[:, :3], self.voxel_size_m), values,
+                                            np.ones(values.shape[0], dtype=np.int64))  # fmt: skip
+        self._pending.append((keys, sums, counts))
+        self._pending_voxels += keys.shape[0]
+        if self._pending_voxels >= self._keys.shape[0]:
+            self._merge_pending()
+
+    def _merge_pending(self) -> None:
+        if not self._pending:
+            return
+        self._keys, self._sums, self._counts = _reduce_by_key(
+            np.concatenate([self._keys, *(k for k, _, _ in self._pending)]),
+            np.concatenate([self._sums, *(s for _, s, _ in self._pending)]),
+            np.concatenate([self._counts, *(c for _, _, c in self._pending)]),
         )
+        self._pending, self._pending_voxels = [], 0
 
     def points(self) -> NDArray[np.float64]:
         """(M, 3) mean position of each voxel, metres, map frame."""
+        self._merge_pending()
         return self._sums[:, :3] / self._counts[:, None]
 
     def channels(self) -> dict[str, NDArray[np.generic]]:
         """Mean channels per voxel: ``intensity`` float32; ``r``, ``g``, ``b`` uint8."""
+        self._merge_pending()
         out: dict[str, NDArray[np.generic]] = {}
         for col, name in enumerate(MAP_CHANNELS):
             if self._present is None or name not in self._present:
@@ -148,6 +165,18 @@ class VoxelMap:
             else:
                 out[name] = mean.astype(np.float32)
         return out
+
+
+def _reduce_by_key(
+    keys: NDArray[np.int64], sums: NDArray[np.float64], counts: NDArray[np.int64]
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64]]:
+    """(distinct keys ascending, summed rows (M, c), summed counts (M,)) of rows sharing a key."""
+    unique, inverse = np.unique(keys, return_inverse=True)
+    out = np.empty((unique.shape[0], sums.shape[1]))
+    for c in range(sums.shape[1]):
+        out[:, c] = np.bincount(inverse, weights=sums[:, c], minlength=unique.shape[0])
+    total = np.bincount(inverse, weights=counts, minlength=unique.shape[0]).astype(np.int64)
+    return unique, out, total
 
 
 def _as_pointset(scan: PointSet | LidarFrame, config: RegistrationConfig) -> PointSet:
@@ -178,19 +207,20 @@ def _map_points(
 
 
 class LocalMap:
-    """Sliding window of keyframes (prepared points in the map frame) merged into one target PointSet.
+    """Sliding window of keyframes (prepared points and covariances in the map frame) as one target PointSet.
 
-    The merged cloud is voxel-downsampled at the registration voxel size (descriptors averaged) and
-    gets covariances recomputed on it, so surfaces sampled by several viewpoints give well-shaped
-    planes (eq. 4-5) and MC-GICP descriptor statistics (eq. 6-10) over the whole window.
+    Each keyframe keeps the covariances its scan was prepared with (GICP eq. 4-5 or MC-GICP eq. 6-10),
+    rotated into the map frame (R C R^T). The merged window is voxel-downsampled at the registration voxel
+    size with positions, descriptors and covariances averaged per voxel, so a surface seen from several
+    viewpoints is one layer of points with the mean of its plane models; no neighbour search or
+    covariance estimation runs on the merged cloud, only its kd-tree is built.
     """
 
     def __init__(self, config: RegistrationConfig, max_keyframes: int) -> None:
         if max_keyframes < 1:
             raise ConfigError(f"local_map_keyframes must be >= 1, got {max_keyframes}")
         self.config = config
-        self._keyframes: deque[tuple[NDArray[np.float64], NDArray[np.float64]]] = deque(maxlen=max_keyframes)
-        self._names: tuple[str, ...] = ()
+        self._keyframes: deque[PointSet] = deque(maxlen=max_keyframes)
         self._target: PointSet | None = None
         self.T_map_last_keyframe: NDArray[np.float64] | None = None
 
@@ -200,18 +230,14 @@ class LocalMap:
 
     def add(self, scan: PointSet, T_map_scan: NDArray[np.float64]) -> None:
         """Add a prepared scan at its map pose as a keyframe (drops the oldest beyond the window)."""
-        self._keyframes.append((apply(T_map_scan, scan.points_xyz), scan.channels.copy()))
-        self._names = scan.channel_names
+        self._keyframes.append(transformed_pointset(scan, T_map_scan))
         self._target = None
         self.T_map_last_keyframe = np.array(T_map_scan, dtype=np.float64)
 
     def target(self) -> PointSet:
         """The merged window as a registration target (built lazily after each keyframe)."""
         if self._target is None:
-            points = np.concatenate([p for p, _ in self._keyframes])
-            desc = np.concatenate([c for _, c in self._keyframes])
-            channels = {name: desc[:, col] for col, name in enumerate(self._names)}
-            self._target = prepare_pointset(points, channels, self.config, frame_id="map")
+            self._target = merge_pointsets(list(self._keyframes), self.config)
         return self._target
 
 
@@ -287,10 +313,29 @@ class _Deskew:
         return scan if twist is None else deskew_pointset(scan, twist)
 
 
+def _external_motion(
+    initial_motion: Sequence[NDArray[np.float64]] | Callable[[int], NDArray[np.float64] | None] | None,
+    index: int,
+    previous_stamp_ns: int,
+    stamp_ns: int,
+) -> NDArray[np.float64] | None:
+    """inv(P_prev) @ P_curr of the external odometry for scan ``index`` (None when there is none)."""
+    if initial_motion is None:
+        return None
+    if callable(initial_motion):
+        before, now = initial_motion(previous_stamp_ns), initial_motion(stamp_ns)
+        if before is None or now is None:
+            return None
+        return invert(np.asarray(before)) @ np.asarray(now)
+    if index >= len(initial_motion):
+        raise InputError(f"initial_motion has {len(initial_motion)} poses for more scans")
+    return invert(np.asarray(initial_motion[index - 1])) @ np.asarray(initial_motion[index])
+
+
 def run_odometry(
     scans: Iterable[PointSet | LidarFrame],
     config: RegistrationConfig | None = None,
-    initial_motion: Sequence[NDArray[np.float64]] | None = None,
+    initial_motion: Sequence[NDArray[np.float64]] | Callable[[int], NDArray[np.float64] | None] | None = None,
     voxel_map: VoxelMap | None = None,
     *,
     mode: OdometryMode = "scan_to_map",
@@ -314,7 +359,9 @@ def run_odometry(
         scans: LidarFrames (prepared with ``config``) or already prepared PointSets, in time order.
         config: registration settings (method, channels, voxel size...); default GICP.
         initial_motion: optional external odometry, one (4, 4) pose T_odom_lidar per scan; the guess
-            for each pair is then inv(P[k-1]) @ P[k]. Without it: constant velocity.
+            for each pair is then inv(P[k-1]) @ P[k]; or a function of the scan stamp (ns) giving that
+            pose, None where it has none (that pair takes the constant-velocity guess). Without it:
+            constant velocity.
         voxel_map: when given, every scan is inserted at its estimated pose (a failed pair keeps
             the guess and the map keeps going).
         mode: ``scan_to_map`` (local keyframe map, see the module docstring) or ``scan_to_scan``.
@@ -382,12 +429,8 @@ def run_odometry(
             if local_map is not None:
                 local_map.add(current, T_map_curr)
         else:
-            if initial_motion is not None:
-                if index >= len(initial_motion):
-                    raise InputError(f"initial_motion has {len(initial_motion)} poses for more scans")
-                guess = invert(np.asarray(initial_motion[index - 1])) @ np.asarray(initial_motion[index])
-            else:
-                guess = velocity
+            guess = _external_motion(initial_motion, index, previous.stamp_ns, raw.stamp_ns)
+            guess = velocity if guess is None else guess
             interval_s = (raw.stamp_ns - previous.stamp_ns) * 1e-9
             if coarse is not None and index == 1:
                 _, _, guess = registered(raw, guess, coarse)

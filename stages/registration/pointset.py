@@ -6,10 +6,10 @@ lazily and cached.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -17,21 +17,11 @@ from scipy.spatial import cKDTree
 
 from fleetcal.pipeline.errors import ConfigError, InputError
 from fleetcal.pipeline.frames import LidarFrame
-from fleetcal.stages.registration.covariances import estimate_covariances, knn_indices
+from fleetcal.stages.registration.config import CHANNEL_MODES, RegistrationConfig
+from fleetcal.stages.registration.covariances import build_kdtree, estimate_covariances, knn_indices
 from fleetcal.stages.registration.voxel import voxel_downsample_capped
 
-if TYPE_CHECKING:
-    from fleetcal.stages.registration.gicp import RegistrationConfig
-
 log = logging.getLogger(__name__)
-
-CHANNEL_MODES: dict[str, tuple[str, ...]] = {
-    "none": (),
-    "intensity": ("intensity",),
-    "color": ("r", "g", "b"),
-    "combined": ("intensity", "r", "g", "b"),
-}
-"""Descriptor channels of each channel mode, in column order."""
 
 MAX_PREPARED_POINTS = 500_000
 """Most points a prepared scan keeps: a scan still larger after voxel downsampling is downsampled
@@ -95,7 +85,7 @@ class PointSet:
     def tree(self) -> cKDTree:
         """kd-tree over ``points_xyz`` (built on first use)."""
         if self._tree is None:
-            self._tree = cKDTree(self.points_xyz)
+            self._tree = build_kdtree(self.points_xyz)
         return self._tree
 
     def scaled_descriptors(self, channel_alpha: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -108,7 +98,7 @@ class PointSet:
         tree = self._feature_trees.get(key)
         if tree is None:
             features = np.concatenate([self.points_xyz, self.scaled_descriptors(channel_alpha)], axis=1)
-            tree = cKDTree(features)
+            tree = build_kdtree(features)
             self._feature_trees[key] = tree
         return tree
 
@@ -223,16 +213,18 @@ def prepare_pointset(
         variance = np.maximum(desc.var(axis=0), MIN_CHANNEL_VARIANCE)
     else:
         lam, variance = _descriptor_covariance(desc, config.channels, config.descriptor_variance_scale)
+    pts = np.ascontiguousarray(pts)
+    tree = None
     if config.method == "color_icp":
         cov = np.broadcast_to(np.eye(3) * POINT_TO_POINT_VARIANCE, (pts.shape[0], 3, 3)).copy()
-    elif config.method == "mcgicp":
-        nbrs = knn_indices(pts, config.k_neighbors, workers=config.workers)
-        cov = estimate_covariances(
-            pts, config.k_neighbors, config.epsilon, desc, lam, neighbors=nbrs, workers=config.workers
-        )
     else:
-        cov = estimate_covariances(pts, config.k_neighbors, config.epsilon, workers=config.workers)
-    return PointSet(
+        tree = build_kdtree(pts)  # the neighbour search's tree is the registration target's tree too
+        nbrs = knn_indices(pts, config.k_neighbors, tree=tree, workers=config.workers)
+        cov = estimate_covariances(
+            pts, config.k_neighbors, config.epsilon, desc if config.method == "mcgicp" else None, lam,
+            neighbors=nbrs, workers=config.workers,
+        )  # fmt: skip
+    prepared = PointSet(
         points_xyz=np.ascontiguousarray(pts),
         channels=np.ascontiguousarray(desc),
         covariances=cov,
@@ -244,6 +236,52 @@ def prepare_pointset(
         frame_id=frame_id,
         times_s=voxel_times,
     )
+    prepared._tree = tree
+    return prepared
+
+
+def transformed_pointset(scan: PointSet, T_new_scan: NDArray[np.float64]) -> PointSet:
+    """``scan`` moved into another frame: points p' = R p + t, covariances R C R^T (descriptors kept)."""
+    T = np.asarray(T_new_scan, dtype=np.float64)
+    R = T[:3, :3]
+    return dataclasses.replace(
+        scan,
+        points_xyz=np.ascontiguousarray(scan.points_xyz @ R.T + T[:3, 3]),
+        covariances=np.ascontiguousarray(np.matmul(np.matmul(R, scan.covariances), R.T)),
+    )
+
+
+def merge_pointsets(scans: Sequence[PointSet], config: RegistrationConfig, frame_id: str = "map") -> PointSet:
+    """One PointSet of several prepared scans already in a common frame, voxel-downsampled at the
+    registration voxel size: positions, descriptors and covariances are averaged per voxel (a mean of
+    positive definite covariances stays positive definite); Lambda and the channel variances are those
+    of the merged descriptors. No neighbour search: the covariances are the scans' own.
+
+    Raises:
+        InputError: no scans, or scans prepared with different channels.
+    """
+    if not scans:
+        raise InputError("no scans to merge")
+    names = scans[0].channel_names
+    if any(s.channel_names != names for s in scans):
+        raise InputError("scans to merge were prepared with different channels")
+    n = len(names)
+    points = np.concatenate([s.points_xyz for s in scans])
+    columns = np.concatenate(
+        [np.concatenate([s.channels, s.covariances.reshape(-1, 9)], axis=1) for s in scans]
+    )
+    points, columns, _, _ = voxel_downsample_capped(points, config.voxel_size_m, columns)
+    desc = np.ascontiguousarray(columns[:, :n])
+    cov = np.ascontiguousarray(columns[:, n:].reshape(-1, 3, 3))
+    if config.descriptor_covariance is not None and n > 0:
+        lam = np.atleast_2d(np.asarray(config.descriptor_covariance, dtype=np.float64))
+        variance = np.maximum(desc.var(axis=0), MIN_CHANNEL_VARIANCE)
+    else:
+        lam, variance = _descriptor_covariance(desc, config.channels, config.descriptor_variance_scale)
+    return PointSet(
+        points_xyz=np.ascontiguousarray(points), channels=desc, covariances=cov, channel_names=names,
+        descriptor_covariance=lam, channel_variance=variance, stamp_ns=scans[-1].stamp_ns, frame_id=frame_id,
+    )  # fmt: skip
 
 
 def _time_column(times_s: NDArray[np.generic] | None, valid: NDArray[np.bool_]) -> NDArray[np.float64] | None:

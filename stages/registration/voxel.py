@@ -158,18 +158,21 @@ def voxel_downsample_capped(
         return (pts.astype(np.float64), ch.astype(np.float64), np.ones(pts.shape[0], dtype=np.int64),
                 float(voxel_size_m))  # fmt: skip
     keys = voxel_keys(pts, voxel_size_m, valid)
-    levels = 0
-    if max_voxels is not None:
-        occupied = _unique_sorted(np.sort(keys))
-        while occupied.shape[0] > max_voxels and levels < _KEY_BITS - 1:
-            levels += 1
-            occupied = _unique_sorted(np.sort(coarsen_keys(occupied, 1)))
-        del occupied
-        coarsen_keys(keys, levels)
     # the sort only numbers the voxels (ascending key); the sums run in point order (bincount).
     # Buffers are reused: the sorted keys become the voxel numbers, the keys the per-point index.
     order = np.argsort(keys)
     voxel_ids = keys[order]
+    levels = 0
+    if max_voxels is not None:
+        occupied = _unique_sorted(voxel_ids)
+        while occupied.shape[0] > max_voxels and levels < _KEY_BITS - 1:
+            levels += 1
+            occupied = _unique_sorted(np.sort(coarsen_keys(occupied, 1)))
+        del occupied
+        if levels:  # sort again on the coarser keys (only for scans over the cap)
+            coarsen_keys(keys, levels)
+            order = np.argsort(keys)
+            voxel_ids = keys[order]
     starts = np.empty(n, dtype=bool)
     starts[0] = True
     np.not_equal(voxel_ids[1:], voxel_ids[:-1], out=starts[1:])
