@@ -430,13 +430,15 @@ def _suspect_reason(cfg: CalibrationConfig, score: float, uncertainty: AxisUncer
     if (not uncertainty.peaked or rotation_2sd > cfg.confident_rotation_deg
             or translation_2sd > cfg.confident_translation_m):
         flat = "" if uncertainty.peaked else "the score does not fall away from the estimate in every direction; "
-        return (f"{flat}two standard deviations of the estimate reach {rotation_2sd:.2f} deg / "
-                f"{100 * translation_2sd:.1f} cm on its loosest axes, beyond {cfg.confident_rotation_deg:g} deg / "
-                f"{100 * cfg.confident_translation_m:.0f} cm (one, about and along the camera's axes: "
-                f"{_axes_text(uncertainty.rotation_deg, 1.0, 'deg')}; "
-                f"{_axes_text(uncertainty.translation_m, 100.0, 'cm')}): the frames do not fix the pose that well, "
-                "or the seeded runs disagree; use more frames with near structure at several depths, or "
-                "--translation hold where only the translation is loose")
+        held = bool(np.all(np.isnan(uncertainty.translation_m)))
+        reach = f"{rotation_2sd:.2f} deg" + ("" if held else f" / {100 * translation_2sd:.1f} cm")
+        axes = _axes_text(uncertainty.rotation_deg, 1.0, "deg") + (
+            "; translation held" if held else f"; {_axes_text(uncertainty.translation_m, 100.0, 'cm')}")
+        advice = "" if held else ", or --translation hold where only the translation is loose"
+        return (f"{flat}two standard deviations of the estimate reach {reach} on its loosest axes, beyond "
+                f"{cfg.confident_rotation_deg:g} deg / {100 * cfg.confident_translation_m:.0f} cm (one, about and "
+                f"along the camera's axes: {axes}): the frames do not fix the pose that well, or the seeded runs "
+                f"disagree; use more frames with near structure at several depths{advice}")
     return ""
 
 
