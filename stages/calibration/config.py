@@ -66,19 +66,8 @@ class CalibrationConfig:
         keep_fraction: GOM only: keep this fraction of the in-view points with the largest lidar
             gradient magnitude (points with zero magnitude never count in GOM and are always dropped).
         sphere_k: sphere neighbours for lidar gradients (paper: 8).
-        normalise_gradients: unit neighbour directions in Algorithm 1 (see ``sphere_kernels``).
         turn_gradients_with_roll: turn the lidar gradient orientations by each candidate's roll about
             the optical axis relative to the initial guess (the paper keeps them fixed).
-        lidar_gradient_axes: ``sphere`` (default, the paper, whose cameras were panoramic): lidar gradients
-            are compared with the image's as computed along the sphere's azimuth / polar axes; ``image``:
-            each is first turned into image u / v at its pixel (``image_plane_gradients``), undoing the
-            pinhole's shear of the sphere's axes (up to ~8 deg at KITTI's corners). Geometrically right but
-            not better on the logs, so not the default (defaults, from tf, sphere -> image): KITTI
-            0.139 / 7.3 -> 0.117 deg / 7.1 cm; PJLab rig1 0.172 / 27.3 -> 0.216 / 37.0 (both suspect); rig2
-            0.304 / 16.1 recalibrated -> 0.420 / 25.1 suspect; nuScenes joint unchanged (0.576 / 31.0);
-            simulated street (intensity, 5 deg / 0.5 m start) 0.253 / 0.9 -> 0.237 / 1.1.
-        lidar_magnitude: GOM weight of a lidar point: ``paper`` (Algorithm 1, sum of absolute
-            differences) or ``vector`` (length of the gradient vector; isotropic noise cancels).
         estimate_focal: also estimate a common scale of fx and fy (paper dataset I).
         focal_search: half-width of the focal scale search (fraction).
         min_points: fewer projected points than this at the optimum is an error.
@@ -286,10 +275,7 @@ class CalibrationConfig:
     polish: bool = True
     keep_fraction: float = 0.5
     sphere_k: int = 8
-    normalise_gradients: bool = False
-    lidar_magnitude: str = "paper"
     turn_gradients_with_roll: bool = True
-    lidar_gradient_axes: str = "sphere"
     estimate_focal: bool = False
     focal_search: float = 0.05
     min_points: int = 100
@@ -408,10 +394,6 @@ class CalibrationConfig:
             raise ConfigError("min_overlap_fraction must be in [0, 1)")
         if not 0 < self.keep_fraction <= 1:
             raise ConfigError("keep_fraction must be in (0, 1]")
-        if self.lidar_gradient_axes not in ("image", "sphere"):
-            raise ConfigError("lidar_gradient_axes must be 'image' or 'sphere'")
-        if self.lidar_magnitude not in ("paper", "vector"):
-            raise ConfigError("lidar_magnitude must be 'paper' or 'vector'")
         if not 0 < self.focal_search < 0.5:
             raise ConfigError("focal_search must be in (0, 0.5)")
         if self.gradient_viewpoint not in ("auto", "camera", "lidar"):

@@ -36,7 +36,6 @@ from fleetcal.stages.calibration.sphere_gradients import (
     camera_sphere_neighbours,
     compute_sphere_gradients,
     depth_discontinuities,
-    image_plane_gradients,
     lidar_view_gradients,
     ring_spacing_rad,
 )
@@ -282,16 +281,14 @@ class CalibrationProblem:
                                          neighbours=neighbours)
         else:
             grads = compute_sphere_gradients(pts, feat, T_cam_lidar, k=cfg.sphere_k,
-                                             normalise=cfg.normalise_gradients, fit=cfg.fit,
+                                             fit=cfg.fit,
                                              neighbours_by=cfg.neighbours_on("camera"), neighbours=neighbours)
-        magnitude = grads.magnitude if cfg.lidar_magnitude == "paper" else np.hypot(grads.gx, grads.gy)
+        magnitude = grads.magnitude
         sel = magnitude > 0
         if cfg.keep_fraction < 1.0 and np.any(sel):
             cut = np.quantile(magnitude[sel], 1.0 - cfg.keep_fraction)
             sel &= magnitude >= cut
         gx, gy = grads.gx[sel], grads.gy[sel]
-        if cfg.lidar_gradient_axes == "image":
-            gx, gy = image_plane_gradients(apply(T_cam_lidar, pts[sel]), gx, gy, f.camera)
         scorer = GomScorer(pts[sel], gx, gy, magnitude[sel], image, f.camera,
                            T_cam_lidar[:3, :3] if cfg.turn_gradients_with_roll else None)
         return scorer, int(sel.sum()), grads.neighbours
