@@ -339,9 +339,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         if _agreeing(held_runs, held_best, cfg) > 0:  # fewer unknowns, confirmed: preferred to an unconfirmed 6 DoF
             x_replaced = [runs[best_index].x]
             runs, best_index, hold = held_runs, held_best, True
-    refined = problem.refine(runs[best_index].x, hold)  # on every point, from the kept run's thinned optimum
-    runs[best_index] = best_run = _Run(refined.best_score, refined.best_x, problem.T_camera_lidar(refined.best_x),
-                                       runs[best_index].iterations + refined.iterations)
+    best_run = runs[best_index]
     score, x_best, iterations = best_run.score, best_run.x, best_run.iterations
     profile = np.full(3, np.nan)
     if not hold and cfg.profile_translation_m > 0:

@@ -438,9 +438,9 @@ class CalibrationProblem:
 
     def optimise(self, seed: int, hold_translation: bool = False) -> tuple[SwarmResult, SwarmResult | None]:
         """One seeded swarm (+ polish) run over the free parameters (``free_parameters``); the others stay
-        at the box's centre (the initial guess). The swarm and the pattern-search polish from its best score
-        the thinned objective (``swarm_stride``: their scores are its); ``refine`` climbs the full one from
-        the run that is kept. Results are given in all D parameters."""
+        at the box's centre (the initial guess). The swarm flies on the thinned objective
+        (``swarm_stride``), the pattern-search polish climbs the full one from its best. Results are given
+        in all D parameters; the swarm's best score is the thinned objective's."""
         cfg = self.config
         free = self.free_parameters(hold_translation)
         centre = 0.5 * (self.lower + self.upper)
@@ -462,20 +462,9 @@ class CalibrationProblem:
                                explore_objective=on_free(self.evaluate_explore) if self.explore_scorers else None,
                                explore_iterations=cfg.explore_phase_iterations, on_iteration=self.on_iteration)
         if not cfg.polish:
+            if stride > 1:
+                swarm.best_score = float(on_free(self.evaluate)(swarm.best_x[None])[0])
             return in_full(swarm), None
-        polish = pattern_search(on_free(partial(self.evaluate, stride=stride)), swarm.best_x, 0.1 * (upper - lower),
-                                lower, upper, min_step_fraction=0.005, score_at_x0=swarm.best_score)
+        polish = pattern_search(on_free(self.evaluate), swarm.best_x, 0.1 * (upper - lower), lower, upper,
+                                min_step_fraction=0.005, score_at_x0=swarm.best_score if stride == 1 else None)
         return in_full(swarm), in_full(polish)
-
-    def refine(self, x: NDArray[np.float64], hold_translation: bool = False) -> SwarmResult:
-        """The pattern-search polish on every point (the full objective) from parameters x (D,), over the free
-        parameters; where the swarm flew on every point (``swarm_stride`` 1) it only scores x."""
-        free = self.free_parameters(hold_translation)
-        full = partial(embed, base=np.asarray(x, dtype=np.float64), free=free)
-        lower, upper = self.lower[free], self.upper[free]
-        if self.swarm_stride == 1:
-            score = float(self.evaluate(np.asarray(x)[None])[0])
-            return SwarmResult(np.asarray(x, dtype=np.float64), score, 0, 1, True, [score])
-        polish = pattern_search(lambda z: self.evaluate(full(z)), np.asarray(x)[free], 0.02 * (upper - lower),
-                                lower, upper, min_step_fraction=0.025)
-        return dataclasses.replace(polish, best_x=full(polish.best_x)[0])
