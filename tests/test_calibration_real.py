@@ -106,7 +106,6 @@ def test_kitti_default_settings_from_log_tf() -> None:
     assert result.verdict == "recalibrated", result.verdict_reason
     assert "y" not in result.weak_translation_axes, result.translation_profile
     assert result.ring_spacing_deg == pytest.approx(0.36, abs=0.03) and not result.sparse_rings
-    assert result.runtime_s < 60
 
 
 @pytest.mark.slow
