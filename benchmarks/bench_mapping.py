@@ -1,6 +1,6 @@
 """Mapping drift on simulated sequences: GICP vs MC-GICP (intensity / color / combined).
 
-Scenes come from engineer C's simulator (``workflows.simulator``, public functions only): the poster
+Scenes come from the simulator (``workflows.simulator``, public functions only): the poster
 ``corridor`` (paper Fig. 3: flat walls, texture only) and the ``street`` block. Colour comes from the
 simulated cameras through ``stages.colorize`` (true extrinsics), so ``color`` and ``combined`` use the
 same path as a real rig. Scans are de-skewed (cast from the scan-stamp pose).

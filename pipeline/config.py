@@ -135,8 +135,8 @@ class CalibrationConfig:
             sphere by evidence over the real logs and the simulator (3 repeats, from the logs' tf;
             range alone in brackets): KITTI 0.133 deg / 7.2 cm (0.142 / 8.0), PJLab rig1 0.186 / 27
             (6.69 / 29), simulated street 640x360 0.545 / 16 (3.93 / 30), nuScenes joint 1.52 / 26
-            (0.37 / 22); with the lidar viewpoint (the ``auto`` default since stop 24), nuScenes joint
-            0.53 deg (range 0.51). Re-checked with the lidar viewpoint (stop 25, ``benchmarks/bench_starts.py
+            (0.37 / 22); with the lidar viewpoint (the ``auto`` default), nuScenes joint
+            0.53 deg (range 0.51). Re-checked with the lidar viewpoint (``benchmarks/bench_starts.py
             --starts 2 --features ...``: KITTI, PJLab rig2, rig1, nuScenes, each from its tf and 2 starts 2 deg /
             12 cm off; within 0.5 deg / 15 cm, and outside that yet not ``suspect``): range+normals 7 of 12
             within, 3 wrong (nuScenes' 0.55-0.66 deg); normals 4, 1 (KITTI 0.16-0.17 deg, rig2 1.9-7.7, nuScenes

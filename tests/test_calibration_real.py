@@ -111,8 +111,8 @@ def test_kitti_default_settings_from_log_tf() -> None:
 @pytest.mark.slow
 def test_kitti_from_drifted_starts_stays_within_bounds() -> None:
     """A fleet's logs each drift their own way: from three random starts 2 deg / 12 cm off (seeds of
-    ``bench_starts.py``), defaults. Measured 0.14-0.19 deg / 3-5 cm; the camera sphere (the default
-    until stop 24) gave 0.35 / 14, 0.57 / 24 and 0.24 / 12."""
+    ``bench_starts.py``), defaults. Measured 0.14-0.19 deg / 3-5 cm; the camera sphere
+    (``--gradient-viewpoint camera``) gave 0.35 / 14, 0.57 / 24 and 0.24 / 12."""
     log_path("kitti_2011_09_26.mcap")
     problem = load_real_frames("kitti_2011_09_26.mcap")
     config = solver_config(Config())
@@ -221,7 +221,7 @@ def test_pjlab_two_frames_with_distortion() -> None:
 @pytest.mark.slow
 def test_pjlab_rig2_single_raw_frame_of_another_rig() -> None:
     """Another rig (raw bgr8 ``Image``, 5-coefficient distortion), one frame, workflow defaults: measured
-    2.00 deg / 13.2 cm -> 0.299 deg / 14.2 cm (the camera sphere before stop 24: 0.304 / 16.1). One frame
+    2.00 deg / 13.2 cm -> 0.299 deg / 14.2 cm (the camera sphere: 0.304 / 16.1). One frame
     fixes the rotation; its translation is not observed well enough to improve on the log's 13 cm (guard
     at 25 cm)."""
     log_path("pjlab_road_rig2")

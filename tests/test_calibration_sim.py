@@ -214,7 +214,7 @@ def test_open_scene_intensity_recovers_extrinsic(sim_dir: Path) -> None:
     ``suspect``; from two starts 2 deg / 12 cm off, default box: 0.21 / 2.5 and 0.20 / 2.9. The lidar's
     sphere keeps a 0.2 deg bias here, from the scan's 512 columns (from the truth 0.212 deg, with 1024
     columns 0.104: ``test_lidar_sphere_from_the_truth_stays_there_when_columns_are_dense``); the camera's
-    (the default until stop 24) gave 0.13 deg / 1.4 cm from this start, 0.05 / 1.1 and 1.77 / 18.7 from the
+    (``gradient_viewpoint = camera``) gave 0.13 deg / 1.4 cm from this start, 0.05 / 1.1 and 1.77 / 18.7 from the
     other two."""
     frames, T_init, T_true = simulated_frames(sim_dir, "open", "intensity", 10)
     result = calibrate(frames, T_init, CalibrationConfig(search_deg=10.0, search_m=1.0, repeats=2))

@@ -1,10 +1,10 @@
-"""Faults (issue 8): a full output filesystem, an output folder that cannot be written (both really
+"""Faults: a full output filesystem, an output folder that cannot be written (both really
 fail for root: a 1 MiB tmpfs and ``chattr +i``), and proof that no command ever opens an input log
 for writing (read-only copies, sha256 + mtime unchanged, and an audit hook on every ``open``).
 
 A dask worker killed mid-run is covered by ``tests/test_engine.py::
 test_killed_worker_tasks_are_retried_and_run_completes`` and the SIGKILLed ``batch`` + resume by
-``tests/test_batch.py`` (engineer B); they are not duplicated here.
+``tests/test_batch.py``; they are not duplicated here.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Fuzzing (issue 8): every decoder (PointCloud2, Image, CompressedImage, CameraInfo, TF) on random and
+"""Fuzzing: every decoder (PointCloud2, Image, CompressedImage, CameraInfo, TF) on random and
 mutated messages, and the MCAP / ROS 1 / ROS 2 readers on byte-flipped and truncated copies of the
 real logs in ../shared/data/logs. The property: a valid result or a ``FleetcalError`` subclass of
 ``InputError`` (DecodeError, TransformError, ReaderError...), never any other exception.

@@ -22,7 +22,7 @@ from fleetcal.stages.registration import RegistrationConfig, pointset_from_frame
 
 
 def load_lidar_frames(path: Path, topic: str) -> list[LidarFrame]:
-    """All LidarFrames of ``topic`` (engineer A/B readers; frames.iter_lidar_frames when present)."""
+    """All LidarFrames of ``topic`` (via ``frames.iter_lidar_frames``)."""
     from fleetcal.readers.open import open_log
 
     reader = open_log(path)

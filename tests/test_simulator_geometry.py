@@ -1,4 +1,4 @@
-"""Simulator geometric truth against ``CameraModel.project``, the log's CameraInfo and its ``/tf`` (issue 3/6).
+"""Simulator geometric truth against ``CameraModel.project``, the log's CameraInfo and its ``/tf``.
 
 Pixel convention: ``CameraModel`` pixel (u, v) is the centre of pixel (u, v). A rendered edge must sit where
 ``project`` puts the 3D edge (sub-pixel, measured with the slanted-edge method), the log must carry the

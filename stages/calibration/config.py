@@ -13,8 +13,7 @@ class CalibrationConfig:
     """Settings of ``calibrate``.
 
     The evidence given for each default was measured when it was chosen; unless it names the viewpoint,
-    evidence from a box of 5 deg / 0.5 m or less predates stop 24 and used the paper's camera sphere, the
-    default there until then (``gradient_viewpoint``; ``benchmarks/bench_starts.py`` for the current one).
+    evidence from a box of 5 deg / 0.5 m or less was measured on the paper's camera sphere (``gradient_viewpoint``; ``benchmarks/bench_starts.py`` for the current one).
 
     Attributes:
         metric: ``gom`` | ``nmi`` | ``levinson``.
@@ -139,7 +138,7 @@ class CalibrationConfig:
             10 cm off (seeds 7, 8): rolled 30 deg (29 deg slant at the start) 0.14 deg / 30 cm with either start
             and ``sampling``; rolled 35, 40, 45 deg: ``sampling`` 0.23-0.69, 1.10-1.14, 1.36-1.67 deg (one of
             six ``recalibrated``), ``angle`` 0.30-0.57, 0.60-0.61, 0.21 deg (11-23 cm). ``angle`` had the better
-            rotation in every slanted case, yet 0.3-0.76 deg (stop 26's second log) is not the accuracy asked,
+            rotation in every slanted case, yet 0.3-0.76 deg (on a second simulated log) is not the accuracy asked,
             so the verdict stays ``suspect``. 16 beams x 1800 rolled 45 deg defeat both: ``angle`` 7.1 and 1.7
             deg, ``sampling`` 1.0 and 2.2 deg. A 64-beam lidar rolled 45 deg is not affected (0.03 deg / 2 cm).
         agree_rotation_deg, agree_translation_m: with ``repeats`` >= 2 the returned run must be confirmed
@@ -194,7 +193,7 @@ class CalibrationConfig:
               along the optical axis, which the translation profile names weak, so those estimates are
               ``suspect`` by their uncertainty;
             - nuScenes (32 beams) took the lidar view before as well (rings too sparse for the camera's).
-            Until stop 24 ``auto`` chose the camera view for boxes up to 5 deg / 0.5 m on evidence from
+            Choosing the camera view for boxes up to 5 deg / 0.5 m on evidence from
             one start per log (the log's tf), where it was ahead on KITTI (0.133 deg / 7.2 cm vs 0.189 /
             3.7) and PJLab rig1 (0.186 / 27 vs 0.85 / 45); across starts that lead was chance. From KITTI
             starts 5 deg / 0.5 m off, box 10 deg / 1 m: 10 of 10 seeds within 0.3 deg / 10 cm with the
