@@ -59,7 +59,7 @@ class DemoState:
 
 @dataclass
 class StepOutcome:
-    """Result of one demo step: ``status`` is ``ok``, ``not built yet`` or ``failed``."""
+    """Result of one demo step: ``status`` is ``ok`` or ``failed``."""
 
     name: str
     status: str

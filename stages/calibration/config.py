@@ -13,7 +13,8 @@ class CalibrationConfig:
     """Settings of ``calibrate``.
 
     The evidence given for each default was measured when it was chosen; unless it names the viewpoint,
-    evidence from a box of 5 deg / 0.5 m or less was measured on the paper's camera sphere (``gradient_viewpoint``; ``benchmarks/bench_starts.py`` for the current one).
+    evidence from a box of 5 deg / 0.5 m or less was measured on the paper's camera sphere
+    (``gradient_viewpoint``; ``benchmarks/bench_starts.py`` for the current one).
 
     Attributes:
         metric: ``gom`` | ``nmi`` | ``levinson``.
