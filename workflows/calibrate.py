@@ -7,8 +7,10 @@ swarm + polish (``stages.calibration``) -> ``calibration.parquet``, ``frames.par
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -16,12 +18,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from fleetcal.pipeline.camera_model import with_model
+from fleetcal.pipeline.camera_model import CameraModel, with_model
 from fleetcal.pipeline.config import Config
+from fleetcal.pipeline.engine import Engine
 from fleetcal.pipeline.errors import InputError, ProcessingError, UsageError
 from fleetcal.pipeline.frames import CameraFrame, LidarFrame
-from fleetcal.pipeline.pairing import PairingStats, iter_pairs
-from fleetcal.pipeline.progress import Progress
+from fleetcal.pipeline.pairing import PairingStats, pair_stamps, raw_header_stamp_ns
 from fleetcal.pipeline.transforms import (
     TransformTree,
     apply,
@@ -32,10 +34,17 @@ from fleetcal.pipeline.transforms import (
     translation_error_m,
 )
 from fleetcal.readers.base import LogReader
-from fleetcal.readers.frames import load_tf_tree
+from fleetcal.readers.frames import IMAGE_TYPES, POINTCLOUD2, CameraInfoTracker, load_tf_tree, require_topic
 from fleetcal.stages.calibration.calibrator import CalibrationResult, calibrate
 from fleetcal.stages.calibration.config import CalibrationConfig as SolverConfig
-from fleetcal.stages.calibration.frame import CalibrationFrame, build_frame
+from fleetcal.stages.calibration.frame import (
+    CalibrationFrame,
+    CameraFeatures,
+    build_frame,
+    camera_feature_stage,
+    join_frame,
+    lidar_feature_stage,
+)
 from fleetcal.stages.sinks import report
 from fleetcal.stages.sinks.tables import CALIBRATION_SCHEMA, FRAMES_SCHEMA, write_rows
 from fleetcal.workflows.ego_motion import scan_motion, sweep_motion
@@ -143,7 +152,7 @@ def make_frame(
     blur_sigma_px: float,
     T_lidar_motion: Mat4 | None,
 ) -> CalibrationFrame:
-    """Per-frame stage: lidar feature and image gradients of one pair (``blur_sigma_px`` 0: by width)."""
+    """Lidar feature and image gradients of one pair in process (``blur_sigma_px`` 0: by width)."""
     if camera.camera is None:
         raise InputError(f"camera {camera.topic} has no CameraInfo in the log (or its K is unusable)")
     if lidar.n_points == 0:
@@ -163,54 +172,87 @@ class _Collected:
     compensated: bool
 
 
+@dataclass(frozen=True)
+class SelectedPairs:
+    """Lidar/camera pairs chosen by header stamps (nothing decoded): ``pairs`` (lidar stamp, camera stamp)
+    in log order, and the log-time range that holds their messages."""
+
+    pairs: list[tuple[int, int]]
+    start_ns: int
+    end_ns: int
+    stats: PairingStats
+
+
+def select_pairs(reader: LogReader, lidar_topic: str, camera_topic: str, tolerance_ns: int,
+                 max_pairs: int) -> SelectedPairs:
+    """``max_pairs`` pairs of nearest header stamps within ``tolerance_ns``, spread evenly over the log (as
+    ``pipeline.pairing.iter_pairs`` picks them), from the raw messages' stamps."""
+    require_topic(reader, lidar_topic, (POINTCLOUD2,))
+    require_topic(reader, camera_topic, IMAGE_TYPES)
+    stamps: dict[str, list[int]] = {lidar_topic: [], camera_topic: []}
+    log_times: dict[str, list[int]] = {lidar_topic: [], camera_topic: []}
+    for raw in reader.messages(topics=[lidar_topic, camera_topic]):
+        stamps[raw.topic].append(raw_header_stamp_ns(raw, reader))
+        log_times[raw.topic].append(raw.log_time_ns)
+    matched = pair_stamps(stamps[lidar_topic], stamps[camera_topic], tolerance_ns)
+    stats = PairingStats(len(stamps[lidar_topic]), len(stamps[camera_topic]), len(matched))
+    stats.unmatched_lidar = stats.lidar_frames - stats.matched
+    if len(matched) > max_pairs:
+        picks = np.unique(np.linspace(0, len(matched) - 1, max_pairs).round().astype(np.int64))
+        matched = [matched[int(i)] for i in picks]
+    times = [log_times[lidar_topic][li] for li, _ in matched] + [log_times[camera_topic][ci] for _, ci in matched]
+    return SelectedPairs([(stamps[lidar_topic][li], stamps[camera_topic][ci]) for li, ci in matched],
+                         min(times, default=0), max(times, default=-1) + 1, stats)
+
+
+@dataclass(frozen=True)
+class _OnlySelected:
+    """An engine stage that runs ``stage`` on the frames whose header stamp is in ``stamps_ns`` and skips
+    the others (returns None); ``first_ns``: the frame whose stage gets ``keep_image``."""
+
+    stage: Callable[..., Any]
+    stamps_ns: frozenset[int]
+    first_ns: int = -1
+
+    def __call__(self, frame: Any) -> Any:
+        if frame.stamp_ns not in self.stamps_ns:
+            return None
+        if self.first_ns >= 0:
+            return self.stage(frame, keep_image=frame.stamp_ns == self.first_ns)
+        return self.stage(frame)
+
+
+def _lidar_stage(lidar: LidarFrame, min_points: int, feature: str) -> Any:
+    """Lidar stage: a scan with fewer than ``min_points`` valid points is skipped (InputError)."""
+    if lidar.n_points < min_points:
+        raise InputError(f"scan at {lidar.stamp_ns}: {lidar.n_points} points")
+    return lidar_feature_stage(lidar, feature)
+
+
+def _camera_stage(camera: CameraFrame, blur_sigma_px: float, camera_model: str,
+                  model: CameraModel | None, keep_image: bool = False) -> CameraFeatures:
+    """Camera stage: the calibration's projection (``calibration.camera_model``; ``model``: the client's
+    CameraInfo model of a topic listed as rectified), then gradients and grey."""
+    camera.camera = with_model(model if model is not None else camera.camera, camera_model)
+    return camera_feature_stage(camera, blur_sigma_px if blur_sigma_px > 0 else None, keep_image)
+
+
 def collect_frames(
     reader: LogReader,
     lidar_topic: str,
     camera_topic: str,
     config: Config,
     tree: TransformTree | None,
-    progress: Progress | None = None,
+    engine: Engine | None = None,
 ) -> _Collected:
-    """Decode N pairs spread over the log and run the per-frame stages on them."""
+    """Choose N pairs spread over the log by their stamps, run the per-frame stages (decoding, lidar
+    feature, image gradients) on ``engine`` (None: in process), then join the pairs with their
+    ego-motion from ``tree``."""
     c = config.calibration
-    stats = PairingStats()
+    selected = select_pairs(reader, lidar_topic, camera_topic, config.io.pairing_tolerance_ns, c.frames)
     out = _Collected([], None, [], [], "", "", False)
-    sparse = 0
-    for lidar, camera in iter_pairs(
-        reader, lidar_topic, camera_topic, config.io.pairing_tolerance_ns, max_pairs=c.frames, stats=stats,
-        rectified_topics=config.io.rectified_topics,
-    ):
-        out.lidar_frame, out.camera_frame = lidar.frame_id.lstrip("/"), camera.frame_id.lstrip("/")
-        if lidar.n_points < c.min_points:
-            log.warning("skipping scan at %d: %d points", lidar.stamp_ns, lidar.n_points)
-            sparse += 1
-            continue
-        sweep = (
-            sweep_motion(tree, out.lidar_frame, lidar, camera.stamp_ns)
-            if c.motion_compensation and c.point_times else None
-        )
-        motion = (
-            scan_motion(tree, out.lidar_frame, lidar.stamp_ns, camera.stamp_ns)
-            if c.motion_compensation and sweep is None else None
-        )
-        out.compensated |= motion is not None or sweep is not None
-        camera.camera = with_model(camera.camera, c.camera_model)
-        frame = make_frame(lidar, camera, c.feature, c.blur_sigma_px, motion)
-        if sweep is not None:
-            frame = replace(frame, point_time_offsets_s=sweep[0], twist_lidar=sweep[1])
-        out.frames.append(frame)
-        if out.overlay_image is None:
-            out.overlay_image = camera.image  # the objective keeps gradients only: no image per frame
-        out.lidar_stamps.append(lidar.stamp_ns)
-        out.n_points.append(lidar.n_points)
-        if progress is not None:
-            progress.update()
-    if not out.frames:
-        if sparse:
-            raise InputError(
-                f"no valid points: all {sparse} paired scans on {lidar_topic} have fewer than "
-                f"{c.min_points} valid points (empty or NaN clouds)"
-            )
+    if not selected.pairs:
+        stats = selected.stats
         if stats.lidar_frames == 0 or stats.camera_frames == 0:
             raise InputError(f"no messages on {lidar_topic if stats.lidar_frames == 0 else camera_topic}")
         raise InputError(
@@ -218,6 +260,58 @@ def collect_frames(
             f"{config.io.pairing_tolerance_ns / 1e6:.0f} ms ({stats.lidar_frames} scans, "
             f"{stats.camera_frames} images)"
         )
+    info = CameraInfoTracker.for_image(reader, camera_topic, config.io.rectified_topics)
+    if info.model is None:
+        raise InputError(f"camera {camera_topic} has no CameraInfo in the log (or its K is unusable)")
+    listed = info.model if camera_topic in config.io.rectified_topics else None
+    lidar_stamps = frozenset(li for li, _ in selected.pairs)
+    camera_stamps = frozenset(ci for _, ci in selected.pairs)
+    own = engine is None
+    engine = Engine(workers=0, quiet=True) if engine is None else engine
+    try:
+        def run(topic: str, stage: Callable[[Any], Any], desc: str) -> list[Any]:
+            return list(engine.map_frames(reader.paths, topic, stage, config.engine.batch_size, selected.start_ns,
+                                          selected.end_ns, ordered=True, allow_truncated=config.io.allow_truncated,
+                                          desc=desc))
+
+        lidar_stage = _OnlySelected(functools.partial(_lidar_stage, min_points=c.min_points, feature=c.feature),
+                                    lidar_stamps)
+        scans = {r.lidar.stamp_ns: r for r in run(lidar_topic, lidar_stage, "calibration scans")}
+        camera_stage = _OnlySelected(functools.partial(_camera_stage, blur_sigma_px=c.blur_sigma_px,
+                                                       camera_model=c.camera_model, model=listed),
+                                     camera_stamps, selected.pairs[0][1])
+        images = {r.stamp_ns: r for r in run(camera_topic, camera_stage, "calibration images")}
+    finally:
+        if own:
+            engine.close()
+    for li, ci in selected.pairs:
+        if li not in scans or ci not in images:
+            continue
+        scan, image = scans[li], images[ci]
+        out.lidar_frame, out.camera_frame = scan.lidar.frame_id.lstrip("/"), image.frame_id.lstrip("/")
+        frame = join_frame(scan, image, T_lidar_motion=None)
+        sweep = sweep_motion(tree, out.lidar_frame, scan.lidar, ci) if c.motion_compensation and c.point_times else None
+        motion = scan_motion(tree, out.lidar_frame, li, ci) if c.motion_compensation and sweep is None else None
+        out.compensated |= motion is not None or sweep is not None
+        frame = replace(frame, T_lidar_motion=motion)
+        if sweep is not None:
+            frame = replace(frame, point_time_offsets_s=sweep[0], twist_lidar=sweep[1])
+        out.frames.append(frame)
+        if out.overlay_image is None:
+            out.overlay_image = image.image  # the objective keeps gradients only: no image per frame
+        out.lidar_stamps.append(li)
+        out.n_points.append(scan.lidar.n_points)
+    if not out.frames:
+        sparse = len(lidar_stamps - set(scans))
+        if sparse:
+            raise InputError(
+                f"no valid points: all {sparse} paired scans on {lidar_topic} have fewer than "
+                f"{c.min_points} valid points (empty or NaN clouds)"
+            )
+        raise InputError(f"none of the {len(selected.pairs)} paired frames on {lidar_topic} and {camera_topic} "
+                         "could be decoded")
+    for li in sorted(lidar_stamps - set(scans)):
+        log.warning("skipping scan at %d: fewer than %d valid points or undecodable", li, c.min_points)
     return out
 
 
@@ -245,8 +339,12 @@ def run_calibration(
     initial: str | None = None,
     joint: bool = False,
     quiet: bool = False,
+    engine: Engine | None = None,
 ) -> list[PairCalibration]:
-    """Calibrate every camera against the lidar (pairwise) or the whole rig at once (``joint``)."""
+    """Calibrate every camera against the lidar (pairwise) or the whole rig at once (``joint``).
+
+    The per-frame work runs on ``engine`` (None: in process), which is closed once the frames are
+    collected so that its workers do not hold memory during the search (it restarts on its next use)."""
     try:
         tree: TransformTree | None = load_tf_tree(reader)
     except InputError as err:
@@ -257,11 +355,12 @@ def run_calibration(
         if topic not in reader.topics:
             log.warning("rectified topic %s is not in the log: ignored", topic)
     collected: dict[str, _Collected] = {}
-    with Progress(
-        total=config.calibration.frames * len(camera_topics), desc="calibration frames", quiet=quiet
-    ) as progress:
+    try:
         for topic in camera_topics:
-            collected[topic] = collect_frames(reader, lidar_topic, topic, config, tree, progress)
+            collected[topic] = collect_frames(reader, lidar_topic, topic, config, tree, engine)
+    finally:
+        if engine is not None:
+            engine.close()
     if joint and len(camera_topics) > 1:
         return _calibrate_joint(lidar_topic, camera_topics, collected, tree, initial, solver)
     results: list[PairCalibration] = []

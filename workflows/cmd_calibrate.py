@@ -107,6 +107,7 @@ def overrides(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from fleetcal.pipeline.engine import Engine
     from fleetcal.workflows import calibrate as recipe
     from fleetcal.workflows.common import (
         calibration_notes,
@@ -127,7 +128,9 @@ def run(args: argparse.Namespace) -> int:
     with open_logs(args.logs, config, quiet=args.quiet) as reader:
         lidar = resolve_lidar(reader, args.lidar)
         cameras = resolve_cameras(reader, args.camera)
-        pairs = recipe.run_calibration(reader, lidar, cameras, config, args.initial, args.joint, args.quiet)
+        engine = Engine(scheduler=config.engine.scheduler, workers=config.engine.workers, quiet=args.quiet)
+        pairs = recipe.run_calibration(reader, lidar, cameras, config, args.initial, args.joint, args.quiet,
+                                       engine)
     write_config(config, out_dir)
     recipe.write_calibration(pairs, config, out_dir)
     if not args.no_report:
