@@ -267,12 +267,19 @@ def collect_frames(
     lidar_stamps = frozenset(li for li, _ in selected.pairs)
     camera_stamps = frozenset(ci for _, ci in selected.pairs)
     own = engine is None
+    problems: list[str] = []
     engine = Engine(workers=0, quiet=True) if engine is None else engine
     try:
         def run(topic: str, stage: Callable[[Any], Any], desc: str) -> list[Any]:
-            return list(engine.map_frames(reader.paths, topic, stage, config.engine.batch_size, selected.start_ns,
-                                          selected.end_ns, ordered=True, allow_truncated=config.io.allow_truncated,
-                                          desc=desc))
+            results = list(engine.map_frames(reader.paths, topic, stage, config.engine.batch_size,
+                                             selected.start_ns, selected.end_ns, ordered=True,
+                                             allow_truncated=config.io.allow_truncated, desc=desc))
+            if any(reason.startswith("decode") for reason in engine.stats.skip_reasons):
+                for example in engine.stats.skip_examples:
+                    if " @ log time " in example:  # the engine's words for a message it could not decode
+                        log.warning("skipping an undecodable frame on %s", example)
+                        problems.append(example)
+            return results
 
         lidar_stage = _OnlySelected(functools.partial(_lidar_stage, min_points=c.min_points, feature=c.feature),
                                     lidar_stamps)
@@ -303,13 +310,13 @@ def collect_frames(
         out.n_points.append(scan.lidar.n_points)
     if not out.frames:
         sparse = len(lidar_stamps - set(scans))
-        if sparse:
+        if sparse and not problems:
             raise InputError(
                 f"no valid points: all {sparse} paired scans on {lidar_topic} have fewer than "
                 f"{c.min_points} valid points (empty or NaN clouds)"
             )
         raise InputError(f"none of the {len(selected.pairs)} paired frames on {lidar_topic} and {camera_topic} "
-                         "could be decoded")
+                         f"could be decoded: {problems[0] if problems else 'no reason given'}")
     for li in sorted(lidar_stamps - set(scans)):
         log.warning("skipping scan at %d: fewer than %d valid points or undecodable", li, c.min_points)
     return out
