@@ -10,8 +10,10 @@ taken in a frame turned by the CameraInfo's rectification rotation R; ``R_rect``
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
+from numpy.polynomial import Polynomial
 from numpy.typing import NDArray
 
 from fleetcal.pipeline.errors import DecodeError
@@ -99,47 +101,50 @@ class CameraModel:
     def project(self, points_cam: NDArray[np.floating]) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
         """Project (N, 3) optical-frame points to pixels (turned by ``R_rect`` first, when set).
 
-        Returns (uv (N, 2), valid (N,)); valid is False behind the camera, outside the image or where
-        distortion folds over.
+        Returns (uv (N, 2), valid (N,)); valid is False behind the camera, outside the image or outside
+        the lens model's valid region (``max_undistorted_radius``, ``max_view_angle_rad``), where the
+        distortion folds over. Points outside that region are culled before distorting: their uv are
+        NaN, and no point, however far off axis, overflows or warns.
         """
         p = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
         if self.R_rect is not None:
             p = p @ self.R_rect.T
         x, y, z = p[:, 0], p[:, 1], p[:, 2]
         model = self.distortion_model
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             if model == "cylindrical":
                 theta = np.arctan2(x, z)
                 rho = np.hypot(x, z)
                 u = self.fx * theta + self.cx
                 v = self.fy * y / rho + self.cy
-                front = rho > 1e-9
+                inside_region = rho > 1e-9
             elif model == "equidistant":
                 r = np.hypot(x, y)
                 th = np.arctan2(r, z)
-                k = self.coefficients(4)
-                th2 = th * th
-                th_d = th * (1 + th2 * (k[0] + th2 * (k[1] + th2 * (k[2] + th2 * k[3]))))
-                scale = np.where(r > 1e-12, th_d / np.where(r > 1e-12, r, 1.0), 1.0 / np.where(z > 0, z, 1.0))
-                u = self.fx * x * scale + self.cx
-                v = self.fy * y * scale + self.cy
-                front = (z > 1e-9) & (th < np.radians(89.0))
+                inside_region = (z > 1e-9) & (th < self.max_view_angle_rad)
+                th = np.where(inside_region, th, 0.0)
+                th_d = self._equidistant_radius(th)
+                scale = np.where(r > 1e-12, th_d / np.where(r > 1e-12, r, 1.0), 1.0 / np.where(z > 1e-9, z, 1.0))
+                u = np.where(inside_region, self.fx * x * scale + self.cx, np.nan)
+                v = np.where(inside_region, self.fy * y * scale + self.cy, np.nan)
             else:
-                xn, yn = x / z, y / z
                 front = z > 1e-9
-                xd, yd = self._distort(xn, yn)
-                u = self.fx * xd + self.K[0, 1] * yd + self.cx
-                v = self.fy * yd + self.cy
+                xn = np.where(front, x / np.where(front, z, 1.0), np.inf)
+                yn = np.where(front, y / np.where(front, z, 1.0), np.inf)
+                inside_region = front & (xn * xn + yn * yn <= self.max_undistorted_radius**2)
+                xd, yd = self._distort(np.where(inside_region, xn, 0.0), np.where(inside_region, yn, 0.0))
+                u = np.where(inside_region, self.fx * xd + self.K[0, 1] * yd + self.cx, np.nan)
+                v = np.where(inside_region, self.fy * yd + self.cy, np.nan)
         uv = np.stack([u, v], axis=1)
-        inside = (u >= -0.5) & (u <= self.width - 0.5) & (v >= -0.5) & (v <= self.height - 0.5)
-        valid = front & inside & np.isfinite(u) & np.isfinite(v)
-        if model in ("plumb_bob", "rational_polynomial") and np.any(self.D):
-            valid &= self._monotonic(p, valid)
+        with np.errstate(invalid="ignore"):
+            inside = (u >= -0.5) & (u <= self.width - 0.5) & (v >= -0.5) & (v <= self.height - 0.5)
+        valid = inside_region & inside & np.isfinite(u) & np.isfinite(v)
         return uv, valid
 
     def _distort(
         self, xn: NDArray[np.float64], yn: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Distorted normalised coordinates of undistorted ones (``plumb_bob`` / ``rational_polynomial``)."""
         if self.distortion_model == "none":
             return xn, yn
         k = self.coefficients(8)
@@ -152,24 +157,73 @@ class CameraModel:
         yd = yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
         return xd, yd
 
-    def _monotonic(self, p: NDArray[np.float64], valid: NDArray[np.bool_]) -> NDArray[np.bool_]:
-        """False where a point lies beyond the radius at which radial distortion stops growing."""
-        r_max = self._max_undistorted_radius()
-        with np.errstate(divide="ignore", invalid="ignore"):
-            r = np.hypot(p[:, 0], p[:, 1]) / p[:, 2]
-        return ~valid | (r <= r_max)
+    @cached_property
+    def _radial_polynomials(self) -> tuple[Polynomial, Polynomial, Polynomial]:
+        """(num, den, slope) in s = r^2 of a ``plumb_bob`` / ``rational_polynomial`` radial map
+        ``r -> r num(s) / den(s)``, whose derivative in r is ``slope(s) / den(s)^2``."""
+        k1, k2, _, _, k3, k4, k5, k6 = self.coefficients(8)
+        if self.distortion_model != "rational_polynomial":
+            k4 = k5 = k6 = 0.0
+        num = Polynomial([1.0, k1, k2, k3])
+        den = Polynomial([1.0, k4, k5, k6])
+        slope = num * den + Polynomial([0.0, 2.0]) * (num.deriv() * den - num * den.deriv())
+        return num, den, slope
+
+    @cached_property
+    def max_undistorted_radius(self) -> float:
+        """Largest undistorted radius ``r = hypot(x, y) / z`` (tan of the angle off the optical axis) up to
+        which the ``plumb_bob`` / ``rational_polynomial`` radial map ``r -> r * radial(r^2)`` still grows:
+        the first positive root of its derivative (or of the rational denominator), from the
+        coefficients. Beyond it the lens model folds back (a strong wide-angle barrel distortion does
+        so inside the field of view) and is no model of the lens. ``inf`` where it never stops growing and
+        for the other models."""
+        if self.distortion_model not in ("plumb_bob", "rational_polynomial") or not np.any(self.D):
+            return float("inf")
+        _, den, slope = self._radial_polynomials
+        return float(np.sqrt(_first_positive_root([slope, den])))
 
     def _max_undistorted_radius(self) -> float:
-        rs = np.linspace(0.0, 4.0, 4001)
-        xd, _ = self._distort(rs, np.zeros_like(rs))
-        grow = np.diff(xd) > 0
-        if np.all(grow):
-            return float(rs[-1])
-        return float(rs[int(np.argmin(grow))])
+        """``max_undistorted_radius`` (the name the metric kernels' packing reads)."""
+        return self.max_undistorted_radius
+
+    @cached_property
+    def max_view_angle_rad(self) -> float:
+        """Largest angle off the optical axis (radians) an ``equidistant`` point may have: 89 deg, or less
+        where ``theta -> theta_d`` stops growing first (the first positive root of its derivative). pi
+        for the other models (they limit the radius instead: ``max_undistorted_radius``)."""
+        if self.distortion_model != "equidistant":
+            return float(np.pi)
+        k1, k2, k3, k4 = self.coefficients(4)
+        slope = Polynomial([1.0, 3 * k1, 5 * k2, 7 * k3, 9 * k4])  # d theta_d / d theta in t = theta^2
+        return float(min(np.radians(89.0), np.sqrt(_first_positive_root([slope]))))
+
+    def _equidistant_radius(self, th: NDArray[np.float64]) -> NDArray[np.float64]:
+        """theta_d of angles ``th`` (radians) off the optical axis."""
+        k = self.coefficients(4)
+        th2 = th * th
+        return np.asarray(th * (1 + th2 * (k[0] + th2 * (k[1] + th2 * (k[2] + th2 * k[3])))))
+
+    def _radial_map(self, r: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Distorted radius of undistorted radii ``r`` and its derivative in r (``plumb_bob`` /
+        ``rational_polynomial``, no tangential part)."""
+        num, den, slope = self._radial_polynomials
+        s = r * r
+        d = den(s)
+        return r * num(s) / d, slope(s) / (d * d)
+
+    @cached_property
+    def _radial_table(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """(distorted, undistorted) radii on 4097 points of the valid region (both increasing), to invert
+        the radial map by interpolation; the region is capped at r = 20 (87 deg) where it is unbounded."""
+        r_max = min(self.max_undistorted_radius, 20.0)
+        r = np.linspace(0.0, r_max, 4097)
+        return self._radial_map(r)[0], r
 
     def unproject(self, uv: NDArray[np.floating]) -> NDArray[np.float64]:
         """Rays (N, 3) for pixels (N, 2) in the optical frame: unit depth (z = 1) for pinhole models
-        without ``R_rect``, unit vectors otherwise."""
+        without ``R_rect``, unit vectors otherwise. A pixel beyond the image of the lens model's valid
+        region (a wide-angle image's corners, where the model folds over) gets the ray at the region's
+        edge in its direction; ``project`` of that ray lands short of the pixel."""
         rays = self._unproject_rectified(uv)
         if self.R_rect is None:
             return rays
@@ -186,24 +240,56 @@ class CameraModel:
         yd = (uv[:, 1] - self.cy) / self.fy
         xd = (uv[:, 0] - self.cx - self.K[0, 1] * yd) / self.fx
         if self.distortion_model == "equidistant":
-            th_d = np.hypot(xd, yd)
-            k = self.coefficients(4)
-            th = th_d.copy()
-            for _ in range(20):
-                th2 = th * th
-                f = th * (1 + th2 * (k[0] + th2 * (k[1] + th2 * (k[2] + th2 * k[3])))) - th_d
-                df = 1 + th2 * (3 * k[0] + th2 * (5 * k[1] + th2 * (7 * k[2] + th2 * 9 * k[3])))
-                th = th - f / df
-            with np.errstate(divide="ignore", invalid="ignore"):
-                s = np.where(th_d > 1e-12, np.sin(th) / np.where(th_d > 1e-12, th_d, 1.0), 1.0)
-            rays = np.stack([xd * s, yd * s, np.cos(th)], axis=1)
-            return np.asarray(rays)
-        xn, yn = xd.copy(), yd.copy()
-        for _ in range(30):
-            xx, yy = self._distort(xn, yn)
-            xn = xn - (xx - xd)
-            yn = yn - (yy - yd)
+            return self._unproject_equidistant(xd, yd)
+        if self.distortion_model == "none":
+            return np.stack([xd, yd, np.ones_like(xd)], axis=1)
+        xn, yn = self._undistort_radial(xd, yd)
+        p1, p2 = self.coefficients(4)[2:4]
+        if p1 != 0.0 or p2 != 0.0:
+            for _ in range(8):  # tangential terms (small): fixed point on the radially distorted target
+                r2 = xn * xn + yn * yn
+                tx = 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn)
+                ty = p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
+                xn, yn = self._undistort_radial(xd - tx, yd - ty)
         return np.stack([xn, yn, np.ones_like(xn)], axis=1)
+
+    def _undistort_radial(self, xd: NDArray[np.float64], yd: NDArray[np.float64]) -> tuple[
+            NDArray[np.float64], NDArray[np.float64]]:
+        """Undistorted normalised coordinates of radially distorted ones: the radius by interpolating the
+        monotonic table of the valid region and two Newton steps, clamped to the region."""
+        f_tab, r_tab = self._radial_table
+        rd = np.hypot(xd, yd)
+        r = np.interp(rd, f_tab, r_tab)
+        inside = rd < f_tab[-1]
+        for _ in range(3):  # Newton steps from the table's estimate, kept inside the region
+            f, df = self._radial_map(r)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                r = np.clip(np.where(inside & (df > 1e-12), r - (f - rd) / df, r), 0.0, r_tab[-1])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            scale = np.where(rd > 1e-15, r / np.where(rd > 1e-15, rd, 1.0), 1.0)
+        return xd * scale, yd * scale
+
+    def _unproject_equidistant(self, xd: NDArray[np.float64], yd: NDArray[np.float64]) -> NDArray[np.float64]:
+        th_max = self.max_view_angle_rad
+        th_d_max = float(self._equidistant_radius(np.array([th_max]))[0])
+        th_d = np.hypot(xd, yd)
+        th = np.minimum(th_d, th_max)
+        k = self.coefficients(4)
+        for _ in range(20):
+            th2 = th * th
+            f = self._equidistant_radius(th) - np.minimum(th_d, th_d_max)
+            df = 1 + th2 * (3 * k[0] + th2 * (5 * k[1] + th2 * (7 * k[2] + th2 * 9 * k[3])))
+            th = np.clip(th - f / np.maximum(df, 1e-9), 0.0, th_max)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = np.where(th_d > 1e-12, np.sin(th) / np.where(th_d > 1e-12, th_d, 1.0), 1.0)
+        return np.stack([xd * s, yd * s, np.cos(th)], axis=1)
+
+
+def _first_positive_root(polys: list[Polynomial]) -> float:
+    """The smallest real positive root of any of ``polys`` (inf where none has one)."""
+    roots = [z.real for poly in polys for z in poly.trim().roots()
+             if abs(z.imag) <= 1e-9 * max(1.0, abs(z)) and z.real > 0]
+    return float(min(roots, default=np.inf))
 
 
 def with_model(camera: CameraModel | None, model: str) -> CameraModel | None:

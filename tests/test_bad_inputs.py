@@ -29,7 +29,7 @@ from fleetcal.workflows.cli import main
 from tests import badinputs as bi
 
 REPO = Path(__file__).resolve().parents[1]
-CALIBRATE_FAST = ["--frames", "1", "--particles", "20", "--no-report", "-q"]
+CALIBRATE_FAST = ["--frames", "1", "--particles", "20", "--no-report", "--workers", "0", "-q"]
 MAP_FAST = ["--workers", "0", "-q"]
 CASE_TIMEOUT_S = 60.0
 
@@ -285,6 +285,8 @@ CASES: list[Case] = [  # the corpus table: one case per line, long lines kept fo
             "--translation",
             "hold",
             "--no-report",
+            "--workers",
+            "0",
             "-q",
             "--out",
             str(tmp / "out"),

@@ -300,6 +300,7 @@ def test_truth_schema_matches_shared_data(shared_data: Path, tmp_path: Path) -> 
         (["--max-range", "0"], "--max-range"),
         (["--fisheye", "--panorama"], "--panorama"),
         (["--panorama", "--rectified"], "--rectified"),
+        (["--fisheye", "--wide-angle"], "--wide-angle"),
         (["--lidar", "rosette", "--beams", "64"], "--beams"),
         (["--lidar", "rosette", "--organized"], "organised"),
         (["--lidar", "flash"], "--lidar"),

@@ -494,3 +494,20 @@ def test_perturb_has_exact_magnitudes_and_rig_is_consistent() -> None:
     np.testing.assert_allclose(invert(rig.T_base_cameras[0]) @ rig.T_base_lidar, rig.T_camera_lidar[0])
     with pytest.raises(ConfigError):
         build_rig(0, 1.9, 0, 0, 0)
+
+
+def test_wide_angle_pixels_beyond_the_lens_models_region_see_nothing() -> None:
+    """The wide-angle lens's model folds 50 deg off axis, inside the image's corners: those pixels have no
+    ray (black), every pixel within the region's image has one, and its ray projects back onto it."""
+    from fleetcal.workflows.simulator.camera import wide_angle_camera
+
+    model = wide_angle_camera(160, 90)
+    rays, ok = SimCamera(model).rays()
+    v, u = np.mgrid[0:90, 0:160]
+    d = np.hypot(u.ravel() - model.cx, v.ravel() - model.cy) / model.fx
+    f_edge = float(model._radial_map(np.array([model.max_undistorted_radius]))[0][0])
+    assert not np.any(ok[d > 1.01 * f_edge]) and np.any(d > 1.01 * f_edge)
+    assert np.all(ok[d < 0.99 * f_edge])
+    uv, valid = model.project(rays[ok])
+    assert np.all(valid)
+    np.testing.assert_allclose(uv, np.stack([u.ravel(), v.ravel()], axis=1)[ok], atol=0.01)

@@ -27,6 +27,7 @@ EXAMPLES = """examples:
   fleetcal simulate /tmp/yard --format ros2 --scene open --compressed --fisheye
   fleetcal simulate /tmp/drift.mcap --perturb-deg 3 --perturb-m 0.2 --organized --json
   fleetcal simulate /tmp/livox.mcap --lidar rosette --skewed
+  fleetcal simulate /tmp/vlp16_wide.mcap --beams 16 --wide-angle
 """
 
 
@@ -137,6 +138,10 @@ def add_simulation_arguments(parser: argparse.ArgumentParser, frames: int, size:
     lens.add_argument("--rectified", action="store_true",
                       help="rectified stereo images on /camera_N/image_rect (no distortion, a 1.5 deg R in the "
                            "CameraInfo) instead of raw pinhole")
+    lens.add_argument("--wide-angle", action="store_true",
+                      help="wide-angle cameras (fx = 0.70 x width) with a real lens's strong plumb_bob barrel "
+                           "distortion, D = -0.4398 0.2329 -0.0011 0.00021 -0.073, whose model folds over "
+                           "before the image's corners, instead of the mild pinhole")
     parser.add_argument(
         "--compressed",
         action="store_true",
@@ -191,6 +196,7 @@ def options_from_args(args: argparse.Namespace) -> SimulationOptions:
         fisheye=args.fisheye,
         panorama=args.panorama,
         rectified=args.rectified,
+        wide_angle=args.wide_angle,
         compressed=args.compressed,
         organized=args.organized,
         speed_m_s=args.speed,

@@ -145,25 +145,42 @@ def log_range_feature(points_xyz: NDArray[np.floating]) -> NDArray[np.float64]:
     return np.asarray((lr - lo) / (hi - lo) if hi > lo else np.full(r.shape, 0.5))
 
 
-def build_frame(lidar: LidarFrame, camera: CameraFrame, feature: str = "range",
-                blur_sigma_px: float | None = None, T_camera_camera0: Mat4 | None = None,
-                T_lidar_motion: Mat4 | None = None) -> CalibrationFrame:
-    """A CalibrationFrame from decoded frames: lidar feature(s) (``stages.lidar_features``: ``range``,
-    ``intensity``, ``normals``; or ``log_range``, see ``log_range_feature``; several joined by ``+``
-    give an (N, C) feature), image gradients after a Gaussian blur (``stages.image_gradients``) and
-    the equalised grey for NMI.
+@dataclass
+class LidarFeatures:
+    """Per-frame result of ``lidar_feature_stage``: the decoded scan (points in its lidar frame, metres, and
+    its channels, e.g. per-point ``time``) and its lidar feature, (N,) or (N, C)."""
 
-    Raises:
-        ProcessingError: the camera frame has no CameraModel (no CameraInfo in the log).
+    lidar: LidarFrame
+    feature: NDArray[np.floating]
+
+
+@dataclass
+class CameraFeatures:
+    """Per-frame result of ``camera_feature_stage``.
+
+    Attributes:
+        stamp_ns, topic, frame_id: of the image.
+        camera: its intrinsics.
+        gradients: image gradients after the blur (``stages.image_gradients.compute_image_gradients``).
+        intensity: (H, W) histogram-equalised grey, uint8 (for NMI).
+        image: the decoded image when the stage was asked to keep it (for overlays), else None.
     """
-    import cv2
 
-    from fleetcal.stages.image_gradients import compute_image_gradients, to_grey_u8
+    stamp_ns: int
+    topic: str
+    frame_id: str
+    camera: CameraModel
+    gradients: GradientImage
+    intensity: NDArray[np.uint8]
+    image: NDArray[np.generic] | None = None
+
+
+def lidar_feature_stage(lidar: LidarFrame, feature: str = "range") -> LidarFeatures:
+    """Per-frame stage: the lidar feature(s) of one scan (``stages.lidar_features``: ``range``,
+    ``intensity``, ``normals``; or ``log_range``, see ``log_range_feature``; several joined by ``+`` give
+    an (N, C) feature)."""
     from fleetcal.stages.lidar_features import compute_lidar_feature
 
-    if camera.camera is None:
-        raise ProcessingError(f"camera {camera.topic} has no CameraInfo: intrinsics are unknown")
-    sigma = default_blur_sigma_px(camera.width) if blur_sigma_px is None else blur_sigma_px
     columns: list[NDArray[np.floating]] = []
     for name in feature_names(feature):
         if name == "log_range":
@@ -172,10 +189,48 @@ def build_frame(lidar: LidarFrame, camera: CameraFrame, feature: str = "range",
             columns.append(compute_lidar_feature(lidar.points_xyz, name,  # type: ignore[arg-type]
                                                  intensity=lidar.channel("intensity")))
     values = columns[0] if len(columns) == 1 else np.stack(columns, axis=1)
+    return LidarFeatures(lidar, values)
+
+
+def camera_feature_stage(camera: CameraFrame, blur_sigma_px: float | None = None,
+                         keep_image: bool = False) -> CameraFeatures:
+    """Per-frame stage: image gradients of one image after a Gaussian blur (None: ``default_blur_sigma_px``
+    of its width) and its equalised grey; the image itself only with ``keep_image``.
+
+    Raises:
+        ProcessingError: the camera frame has no CameraModel (no CameraInfo in the log).
+    """
+    import cv2
+
+    from fleetcal.stages.image_gradients import compute_image_gradients, to_grey_u8
+
+    if camera.camera is None:
+        raise ProcessingError(f"camera {camera.topic} has no CameraInfo: intrinsics are unknown")
+    sigma = default_blur_sigma_px(camera.width) if blur_sigma_px is None else blur_sigma_px
     grads = compute_image_gradients(camera.image, blur_sigma_px=sigma)
     grey = np.asarray(cv2.equalizeHist(to_grey_u8(camera.image)), dtype=np.uint8)  # 1 byte a pixel
+    return CameraFeatures(camera.stamp_ns, camera.topic, camera.frame_id, camera.camera, grads, grey,
+                          camera.image if keep_image else None)
+
+
+def join_frame(lidar: LidarFeatures, camera: CameraFeatures, T_camera_camera0: Mat4 | None = None,
+               T_lidar_motion: Mat4 | None = None) -> CalibrationFrame:
+    """The CalibrationFrame of one lidar scan's and one image's per-frame results."""
     return CalibrationFrame(
-        points_xyz=np.asarray(lidar.points_xyz, dtype=np.float64), feature=values, camera=camera.camera,
-        gradients=grads, intensity=grey,
+        points_xyz=np.asarray(lidar.lidar.points_xyz, dtype=np.float64), feature=lidar.feature,
+        camera=camera.camera, gradients=camera.gradients, intensity=camera.intensity,
         T_camera_camera0=np.eye(4) if T_camera_camera0 is None else np.asarray(T_camera_camera0),
         T_lidar_motion=T_lidar_motion, stamp_ns=camera.stamp_ns, label=camera.topic)
+
+
+def build_frame(lidar: LidarFrame, camera: CameraFrame, feature: str = "range",
+                blur_sigma_px: float | None = None, T_camera_camera0: Mat4 | None = None,
+                T_lidar_motion: Mat4 | None = None) -> CalibrationFrame:
+    """A CalibrationFrame from decoded frames: ``lidar_feature_stage`` and ``camera_feature_stage`` in
+    process, joined.
+
+    Raises:
+        ProcessingError: the camera frame has no CameraModel (no CameraInfo in the log).
+    """
+    return join_frame(lidar_feature_stage(lidar, feature), camera_feature_stage(camera, blur_sigma_px),
+                      T_camera_camera0, T_lidar_motion)

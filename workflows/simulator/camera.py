@@ -42,6 +42,21 @@ def rectified_stereo_camera(width: int, height: int) -> CameraModel:
     return CameraModel(width, height, pinhole_camera(width, height).K, np.zeros(0), "none", R_rect)
 
 
+WIDE_ANGLE_D = np.array([-0.4398, 0.2329, -0.0011, 0.00021, -0.073])
+"""plumb_bob coefficients (k1 k2 p1 p2 k3) of a real wide-angle lens (fx 897 px at 1280x720, about 105 deg
+across the width): its radial map stops growing 50 deg off axis, inside the image's corners."""
+WIDE_ANGLE_FX_PER_WIDTH = 897.0 / 1280.0
+
+
+def wide_angle_camera(width: int, height: int) -> CameraModel:
+    """Wide-angle pinhole with strong plumb_bob barrel distortion (``WIDE_ANGLE_D``, fx = 0.70 x width):
+    the image's corners lie beyond the model's valid region (``CameraModel.max_undistorted_radius``) and
+    render black."""
+    f = WIDE_ANGLE_FX_PER_WIDTH * width
+    K = np.array([[f, 0.0, width / 2 - 0.5], [0.0, f, height / 2 - 0.5], [0.0, 0.0, 1.0]])
+    return CameraModel(width, height, K, WIDE_ANGLE_D.copy(), "plumb_bob")
+
+
 def fisheye_camera(width: int, height: int) -> CameraModel:
     """Equidistant fisheye: 180 deg across the image width."""
     f = width / np.pi
@@ -104,9 +119,10 @@ def _pixel_rays(key: tuple[object, ...], m: CameraModel) -> tuple[NDArray[np.flo
     uv = np.stack([u.ravel(), v.ravel()], axis=1).astype(np.float64)
     rays = m.unproject(uv)
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
-    ok: NDArray[np.bool_] = np.asarray(np.isfinite(rays).all(axis=1))
-    if m.distortion_model == "equidistant":
-        ok &= rays[:, 2] > np.cos(np.radians(89.0))
+    # a pixel sees the scene where its ray projects back onto it: not outside a fisheye's circle nor
+    # beyond the valid region of a strongly distorted lens (there unproject gives the region's edge)
+    uv_back, valid = m.project(rays)
+    ok: NDArray[np.bool_] = np.asarray(valid & (np.abs(uv_back - uv).max(axis=1) < 0.01))
     rays[~ok] = (0.0, 0.0, 1.0)
     rays = np.ascontiguousarray(rays)
     rays.flags.writeable = False

@@ -31,6 +31,7 @@ from fleetcal.workflows.simulator.camera import (
     pinhole_camera,
     rectified_stereo_camera,
     render,
+    wide_angle_camera,
 )
 from fleetcal.workflows.simulator.lidar import (
     DEFAULT_LAYOUT,
@@ -93,6 +94,7 @@ class SimulationOptions:
     fisheye: bool = False
     panorama: bool = False
     rectified: bool = False
+    wide_angle: bool = False
     compressed: bool = False
     organized: bool = False
     speed_m_s: float | None = None
@@ -118,8 +120,8 @@ class SimulationOptions:
     def validate(self) -> None:
         """Raise ConfigError with a one-line message for any nonsense value."""
         checks = [
-            (self.fisheye + self.panorama + self.rectified <= 1,
-             "choose one of fisheye, panorama and rectified cameras"),
+            (self.fisheye + self.panorama + self.rectified + self.wide_angle <= 1,
+             "choose one of fisheye, panorama, rectified and wide-angle cameras"),
             (
                 self.fmt in ("mcap", "ros1", "ros2"),
                 f"unknown format {self.fmt!r} (choose from mcap, ros1, ros2)",
@@ -234,7 +236,8 @@ def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet:
         pattern="rosette" if opts.lidar == "rosette" else "spinning",
     )
     make_model = (fisheye_camera if opts.fisheye else panorama_camera if opts.panorama
-                  else rectified_stereo_camera if opts.rectified else pinhole_camera)
+                  else rectified_stereo_camera if opts.rectified else wide_angle_camera if opts.wide_angle
+                  else pinhole_camera)
     cameras = [
         SimCamera(make_model(opts.width, opts.height), spectral_mix=min(0.15 * i, 0.6)) for i in range(opts.cameras)
     ]
