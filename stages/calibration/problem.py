@@ -431,8 +431,8 @@ class CalibrationProblem:
     def swarm_stride(self) -> int:
         """Thinning of the swarm's objective: the swarm scores about ``CalibrationConfig.swarm_points`` points
         over all frames (``Scorer.thinned``: GOM keeps the points with the strongest lidar gradients), the
-        polish every point; 0 (the default) scores every point. NMI and Levinson fly on every point."""
-        if self.config.metric != "gom" or self.config.swarm_points == 0:
+        polish every point. NMI and Levinson fly on every point."""
+        if self.config.metric != "gom":
             return 1
         return max(1, round(self.total_points / self.config.swarm_points))
 
