@@ -15,7 +15,6 @@ import cv2
 import numpy as np
 import pytest
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from fleetcal.pipeline.camera_model import CameraModel
 from fleetcal.pipeline.errors import ConfigError, ProcessingError
@@ -29,7 +28,7 @@ from fleetcal.pipeline.transforms import (
     translation_error_m,
 )
 from fleetcal.stages.calibration import CalibrationConfig, CalibrationFrame, calibrate, compensate_ego_motion
-from fleetcal.stages.calibration.calibrator import SearchProgress, agreeing_repeats, box_edge, resolve_auto_rules
+from fleetcal.stages.calibration.calibrator import agreeing_repeats, box_edge, resolve_auto_rules
 from fleetcal.stages.calibration.frame import build_frame, default_blur_sigma_px
 from fleetcal.stages.calibration.metrics import GomScorer, camera_params
 from fleetcal.stages.calibration.problem import CalibrationProblem
@@ -332,26 +331,27 @@ def test_translation_profile_names_the_components_a_far_scene_does_not_fix(frame
     np.testing.assert_allclose(off.T_camera_lidar, near.T_camera_lidar)  # a diagnostic: the estimate is the same
 
 
-def test_a_far_wall_leaves_the_translation_uncertain_and_the_estimate_suspect(frame: CalibrationFrame) -> None:
-    """Start 1 deg off at the true camera centre, one 6-DoF run each. The wall 45 m away: an angle the size of
-    the scan's sampling cell spans decimetres there, so the translation's deviations exceed what a confident
-    estimate may have (``CalibrationConfig.confident_translation_m``) and the verdict is ``suspect``, saying
-    so. The near scene (5-20 m) fixes every axis to a few centimetres and a fifth of a degree, and the
-    truth lies within two of its deviations on every axis."""
+def test_a_long_move_along_weak_axes_from_a_trusted_start_is_suspect() -> None:
+    """Far wall, start 1 deg off at the true camera centre, one 6-DoF run: the estimate slides along the
+    shift/turn ridge across the line of sight (x, y weak). Moving more than ``weak_move_max_m`` along weak
+    axes from a trusted start is ``suspect``; the estimate itself is the same either way, and a wide box
+    (an untrusted start) is exempt."""
+    wall = far_wall_frame()
     T_true = true_T_camera_lidar()
     T_init = perturb(T_true, 1.0, 0.0, seed=2)
     cfg = CalibrationConfig(search_deg=2.0, search_m=0.5, n_particles=60, repeats=1, translation="estimate",
-                            gradient_viewpoint="camera")
-    far = calibrate([far_wall_frame()], T_init, cfg)
-    assert far.verdict == "suspect" and "two standard deviations" in far.verdict_reason, far.verdict_reason
-    assert np.all(far.std_translation_m > 0.05) and np.all(far.std_rotation_deg < 0.25), far.std_translation_m
-    near = calibrate([frame], T_init, cfg)
-    assert near.verdict == "recalibrated", near.verdict_reason
-    assert np.all(near.std_translation_m < 0.05) and np.all(near.std_rotation_deg < 0.2)
-    rotation = Rotation.from_matrix(near.T_camera_lidar[:3, :3] @ T_true[:3, :3].T).as_rotvec(degrees=True)
-    assert np.all(np.abs(rotation) <= 2 * near.std_rotation_deg), (rotation, near.std_rotation_deg)
-    shift = near.T_camera_lidar[:3, 3] - T_true[:3, 3]
-    assert np.all(np.abs(shift) <= 2 * near.std_translation_m), (shift, near.std_translation_m)
+                            weak_move_max_m=0.02)
+    strict = calibrate([wall], T_init, cfg)
+    moved_m = translation_error_m(strict.T_camera_lidar, T_init)
+    assert set(strict.weak_translation_axes) >= {"x"} and moved_m > 0.05, (strict.translation_profile, moved_m)
+    assert strict.verdict == "suspect" and "the log fixes weakly" in strict.verdict_reason, strict.verdict_reason
+    lenient = calibrate([wall], T_init, dataclasses.replace(cfg, weak_move_max_m=5.0))
+    assert "weakly" not in lenient.verdict_reason
+    np.testing.assert_allclose(lenient.T_camera_lidar, strict.T_camera_lidar)
+    wide = calibrate([wall], T_init, dataclasses.replace(cfg, search_m=0.8))
+    assert "weakly" not in wide.verdict_reason
+    # the weak-move rule was reached and passed over: the (later) one-run rule of a wide box gave the reason
+    assert "one seeded run in a wide search box" in wide.verdict_reason, wide.verdict_reason
 
 
 def test_a_wide_box_never_holds_the_translation() -> None:
@@ -524,7 +524,7 @@ def test_sparse_rings_slanted_across_the_image_are_suspect(frame: CalibrationFra
         other = scanned(beams, roll_deg)
         result = calibrate(*other, cheap)
         assert result.ring_slant_deg == pytest.approx(roll_deg, abs=1.0)
-        assert "slanted" not in result.verdict_reason, (beams, roll_deg, result.verdict_reason)
+        assert result.verdict != "suspect", (beams, roll_deg, result.verdict_reason)
         assert resolve_auto_rules(*other, cheap).neighbours_by == "auto"
 
 
@@ -576,17 +576,3 @@ def test_frame_holds_nine_bytes_a_pixel_and_the_objective_shares_its_gradients()
     problem = CalibrationProblem([frame], true_T_camera_lidar(), CalibrationConfig(ring_smoothing="off"))
     planes = [s.image.planes for s in problem.scorers[0] if isinstance(s, GomScorer)]
     assert planes and all(np.shares_memory(p, frame.gradients.gxy) for p in planes)
-
-
-def test_the_search_reports_its_runs_iterations_best_score_and_eta(frame: CalibrationFrame) -> None:
-    reports: list[SearchProgress] = []
-    cfg = CalibrationConfig(search_deg=2.0, search_m=0.2, n_particles=20, max_iterations=12, min_iterations=12,
-                            repeats=2, confirm_repeats=0, translation="estimate")
-    result = calibrate([frame], perturb(true_T_camera_lidar(), 1.0, 0.05, seed=2), cfg, reports.append)
-    assert [(r.run, r.iteration) for r in reports] == [(run, it) for run in (1, 2) for it in range(1, 13)]
-    assert all(r.runs == 2 for r in reports)
-    fractions = [r.fraction for r in reports]
-    assert fractions == sorted(fractions) and fractions[0] > 0 and fractions[-1] < 1
-    assert all(np.isfinite(r.eta_s) and r.eta_s >= 0 for r in reports)
-    assert reports[-1].best_score == pytest.approx(max(r.best_score for r in reports[12:]))
-    assert result.score >= max(r.best_score for r in reports) - 1e-9  # the polish climbs from the best swarm

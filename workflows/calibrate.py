@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -35,11 +33,11 @@ from fleetcal.pipeline.transforms import (
 )
 from fleetcal.readers.base import LogReader
 from fleetcal.readers.frames import load_tf_tree
-from fleetcal.stages.calibration.calibrator import CalibrationResult, ProgressCallback, SearchProgress, calibrate
+from fleetcal.stages.calibration.calibrator import CalibrationResult, calibrate
 from fleetcal.stages.calibration.config import CalibrationConfig as SolverConfig
 from fleetcal.stages.calibration.frame import CalibrationFrame, build_frame
 from fleetcal.stages.sinks import report
-from fleetcal.stages.sinks.tables import CALIBRATION_SCHEMA, FRAMES_SCHEMA, STD_COLUMNS, write_rows
+from fleetcal.stages.sinks.tables import CALIBRATION_SCHEMA, FRAMES_SCHEMA, write_rows
 from fleetcal.workflows.ego_motion import scan_motion, sweep_motion
 from fleetcal.workflows.pairing import PairingStats, iter_pairs
 
@@ -84,9 +82,6 @@ class PairCalibration:
             "change_m": translation_error_m(self.T_camera_lidar, self.T_camera_lidar_initial),
             "rotation_std_deg": _finite_or_none(self.result.rotation_std_deg),
             "translation_std_m": _finite_or_none(self.result.translation_std_m),
-            **{name: _finite_or_none(float(v)) for name, v in zip(
-                STD_COLUMNS, [*self.result.std_rotation_deg, *self.result.std_translation_m], strict=True)},
-            "initialisation": self.result.initialisation,
             "agreeing_repeats": self.result.agreeing_repeats,
             "translation_held": self.result.translation_held,
             "translation_profile": [_finite_or_none(float(v)) for v in self.result.translation_profile],
@@ -270,15 +265,13 @@ def run_calibration(
         for topic in camera_topics:
             collected[topic] = collect_frames(reader, lidar_topic, topic, config, tree, progress)
     if joint and len(camera_topics) > 1:
-        return _calibrate_joint(lidar_topic, camera_topics, collected, tree, initial, solver, quiet)
+        return _calibrate_joint(lidar_topic, camera_topics, collected, tree, initial, solver)
     results: list[PairCalibration] = []
     for topic in camera_topics:
         col = collected[topic]
         T_init = initial_guess(tree, col.lidar_frame, col.camera_frame, initial)
         _check_visible(col.frames, T_init, topic)
-        with search_progress(quiet) as progress:
-            result = calibrate(col.frames, T_init, solver, progress)
-        result.initialisation = "initial" if initial else "tf"
+        result = calibrate(col.frames, T_init, solver)
         results.append(_pair(lidar_topic, topic, col, result, result.T_camera_lidar, T_init))
     return results
 
@@ -300,7 +293,6 @@ def _calibrate_joint(
     tree: TransformTree | None,
     initial: str | None,
     solver: SolverConfig,
-    quiet: bool = False,
 ) -> list[PairCalibration]:
     """One unknown lidar pose for the whole rig: ``T_camera_k_lidar = T_camera_k_camera0 @ T_camera0_lidar``,
     the camera-to-camera transforms from the log's tf; camera0 is the first camera topic."""
@@ -316,28 +308,12 @@ def _calibrate_joint(
         for f in col.frames:
             f.T_camera_camera0 = T_cam_ref[topic]
             frames.append(f)
-    with search_progress(quiet) as progress:
-        result = calibrate(frames, T_init, solver, progress)
-    result.initialisation = "initial" if initial else "tf"
+    result = calibrate(frames, T_init, solver)
     return [
         _pair(lidar_topic, topic, collected[topic], result, T_cam_ref[topic] @ result.T_camera_lidar,
               T_cam_ref[topic] @ T_init, ref.camera_frame)  # fmt: skip
         for topic in camera_topics
     ]
-
-
-@contextmanager
-def search_progress(quiet: bool) -> Iterator[ProgressCallback]:
-    """A ``calibrate`` progress callback that draws the search on stderr (``pipeline.progress.Progress``:
-    percent done, run, iteration and best score so far, ETA; one line a second at most off a terminal)."""
-    desc = "calibration search"
-    with Progress(total=100, desc=desc, quiet=quiet, unit="%", line_interval_s=1.0) as bar:
-
-        def report(p: SearchProgress) -> None:
-            bar.desc = f"{desc} run {p.run}/{p.runs} iteration {p.iteration} best {p.best_score:.4f}"
-            bar.update(int(100 * p.fraction) - bar.done)
-
-        yield report
 
 
 def _check_visible(frames: list[CalibrationFrame], T_camera_lidar: Mat4, topic: str) -> None:
@@ -363,9 +339,7 @@ def calibration_rows(pairs: list[PairCalibration], feature: str) -> list[dict[st
             "tx_m": t[0], "ty_m": t[1], "tz_m": t[2], "qx": q[0], "qy": q[1], "qz": q[2], "qw": q[3],
             "roll_deg": roll, "pitch_deg": pitch, "yaw_deg": yaw, "score": p.result.score,
             "initial_score": p.result.initial_score, "frames_used": p.result.frames_used,
-            "runtime_s": p.result.runtime_s, "verdict": p.result.verdict, "verdict_reason": p.result.verdict_reason,
-            **dict(zip(STD_COLUMNS, [*p.result.std_rotation_deg, *p.result.std_translation_m], strict=True)),
-            "initialisation": p.result.initialisation,
+            "runtime_s": p.result.runtime_s,
         })  # fmt: skip
     return rows
 

@@ -37,14 +37,7 @@ from fleetcal.pipeline.errors import ProcessingError
 from fleetcal.pipeline.transforms import rotation_error_deg, translation_error_m
 from fleetcal.stages.calibration.config import CalibrationConfig
 from fleetcal.stages.calibration.frame import CalibrationFrame, Mat4, fold_rectification
-from fleetcal.stages.calibration.observability import (
-    AXES,
-    AxisUncertainty,
-    axis_uncertainty,
-    sampling_floor,
-    translation_profile,
-    weak_axes,
-)
+from fleetcal.stages.calibration.observability import AXES, translation_profile, weak_axes
 from fleetcal.stages.calibration.problem import CalibrationProblem, ring_slant_deg
 from fleetcal.stages.calibration.sphere_gradients import cross_ring_neighbours, ring_spacing_rad, sphere_coordinates
 
@@ -65,18 +58,13 @@ class CalibrationResult:
         runtime_s: wall time of the optimisation (all repeats, not the preparation of frames).
         iterations: swarm iterations + polish steps of the returned run.
         evaluations: candidate poses scored over all repeats.
-        point_evaluations: lidar points projected and scored over all candidates (the search's work).
-        verdict: ``ok`` (initial guess confirmed), ``recalibrated`` or ``suspect`` (``_suspect_reason``: GOM
-            below ``gom_suspect_below``, sparse rings slanted across the image, an estimate at the edge of the
-            search box or on a frame's overlap limit, a single run in a ``CalibrationConfig.wide_box``, or two
-            standard deviations beyond ``CalibrationConfig.confident_rotation_deg`` / ``confident_translation_m``).
-        verdict_reason: why ``suspect`` and what to do (empty otherwise).
-        flat: True when the score does not fall away from the estimate in every direction (its curvature).
-        std_rotation_deg, std_translation_m: (3,) standard deviations of the estimate about / along the
-            (reference) camera's x, y, z, degrees / metres (``observability.axis_uncertainty``: the objective's
-            curvature over all frames and the spread of seeded runs that score as well; translation NaN where
-            held, infinite along directions the score does not fix).
-        initialisation: where the initial guess came from (``tf`` or ``initial``; set by the workflow).
+        verdict: ``ok`` (initial guess confirmed), ``recalibrated`` or ``suspect`` (GOM below
+            ``gom_suspect_below``, a flat optimum, an estimate at the edge of the search box or on a
+            frame's overlap limit, no other seeded run agreeing with the returned one, or a held translation
+            whose rotation lies away from the unconfirmed 6-DoF best's, ``CalibrationConfig.translation``; or
+            a single run in a ``CalibrationConfig.wide_box``, which nothing confirms).
+        verdict_reason: why ``suspect`` (empty otherwise).
+        flat: True when the optimum is not distinct from its neighbourhood.
         rotation_std_deg, translation_std_m: RMS deviation of the repeats from the returned estimate
             (NaN with one repeat).
         agreeing_repeats: other seeded runs within ``agree_rotation_deg`` / ``agree_translation_m`` of
@@ -131,10 +119,6 @@ class CalibrationResult:
     ring_spacing_deg: float = float("nan")
     sparse_rings: bool = False
     ring_slant_deg: float = float("nan")
-    std_rotation_deg: NDArray[np.float64] = dataclasses.field(default_factory=lambda: np.full(3, np.nan))
-    std_translation_m: NDArray[np.float64] = dataclasses.field(default_factory=lambda: np.full(3, np.nan))
-    initialisation: str = "tf"
-    point_evaluations: int = 0
 
 
 PARAMETER_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz", "focal_scale")
@@ -154,56 +138,14 @@ def box_edge(x: NDArray[np.float64], lower: NDArray[np.float64], upper: NDArray[
             for i in np.flatnonzero(at_edge)]
 
 
-@dataclass(frozen=True)
-class SearchProgress:
-    """Where a running search stands, as reported to a ``calibrate(..., progress=...)`` callback.
-
-    Attributes:
-        run: the seeded run in flight (1-based).
-        runs: the runs planned so far (confirmation and held-translation runs add to it).
-        iteration: the swarm iteration just finished in that run.
-        best_score: the best score of the run in flight so far (its swarm's objective).
-        elapsed_s: seconds since the search began.
-        fraction: estimated fraction of the search done, in [0, 1).
-        eta_s: estimated seconds left (NaN before the first iteration).
-    """
-
-    run: int
-    runs: int
-    iteration: int
-    best_score: float
-    elapsed_s: float
-    fraction: float
-    eta_s: float
-
-
-ProgressCallback = Callable[[SearchProgress], None]
-
-
-class _SearchClock:
-    """Turns swarm iterations into ``SearchProgress`` reports: a run is expected to take as many iterations as
-    the finished runs took on average (half of ``max_iterations`` before the first has finished)."""
-
-    def __init__(self, callback: ProgressCallback | None, runs: int, max_iterations: int) -> None:
-        self.callback = callback
-        self.runs = runs
-        self.finished: list[int] = []
-        self.max_iterations = max_iterations
-        self.start = time.perf_counter()
-
-    def iteration(self, iteration: int, best_score: float) -> None:
-        if self.callback is None:
-            return
-        expected = float(np.mean(self.finished)) if self.finished else 0.5 * self.max_iterations
-        done = len(self.finished) + min(iteration / max(expected, 1.0), 0.95)
-        runs = max(self.runs, len(self.finished) + 1)
-        fraction = min(done / runs, 0.99)
-        elapsed = time.perf_counter() - self.start
-        eta = elapsed * (1.0 - fraction) / fraction if fraction > 0 else float("nan")
-        self.callback(SearchProgress(len(self.finished) + 1, runs, iteration, best_score, elapsed, fraction, eta))
-
-    def run_done(self, iterations: int) -> None:
-        self.finished.append(iterations)
+def _flat(problem: CalibrationProblem, x_best: NDArray[np.float64], best: float, chance: float) -> bool:
+    cfg = problem.config
+    probes = np.tile(x_best, (6, 1))
+    for i in range(3):
+        probes[2 * i, i] += cfg.flat_probe_deg
+        probes[2 * i + 1, i] -= cfg.flat_probe_deg
+    drop = best - float(np.mean(problem.evaluate(probes)))
+    return drop < cfg.flat_fraction * max(abs(best - chance), 1e-12)
 
 
 @dataclass
@@ -216,13 +158,8 @@ class _Run:
     iterations: int
 
 
-def _best_of(problem: CalibrationProblem, seed: int, hold_translation: bool,
-             clock: _SearchClock | None = None) -> _Run:
-    if clock is not None:
-        problem.on_iteration = clock.iteration
+def _best_of(problem: CalibrationProblem, seed: int, hold_translation: bool) -> _Run:
     swarm, polish = problem.optimise(seed, hold_translation)
-    if clock is not None:
-        clock.run_done(swarm.iterations)
     best = polish if polish is not None else swarm
     return _Run(best.best_score, best.best_x, problem.T_camera_lidar(best.best_x),
                 swarm.iterations + (polish.iterations if polish is not None else 0))
@@ -242,27 +179,14 @@ def _agreeing(runs: list[_Run], best: int, cfg: CalibrationConfig) -> int:
                             cfg.agree_translation_m)
 
 
-def _spread_runs(runs: list[_Run], best: int, cfg: CalibrationConfig) -> list[NDArray[np.float64]]:
-    """The other runs whose spread about the best counts in its uncertainty: those that confirm it
-    (``agree_rotation_deg`` / ``agree_translation_m``: runs that ended in other, lower optima missed the
-    best, they do not make it less certain), or all of them where none does (the best is one of several
-    optima the data does not choose between)."""
-    others = [i for i in range(len(runs)) if i != best]
-    confirming = [i for i in others if agreeing_repeats([runs[best].T_camera_lidar, runs[i].T_camera_lidar], 0,
-                                                        cfg.agree_rotation_deg, cfg.agree_translation_m)]
-    return [runs[i].x for i in (confirming or others)]
-
-
-def _seeded_runs(problem: CalibrationProblem, cfg: CalibrationConfig, hold_translation: bool,
-                 clock: _SearchClock | None = None) -> tuple[list[_Run], int]:
+def _seeded_runs(problem: CalibrationProblem, cfg: CalibrationConfig, hold_translation: bool) -> tuple[
+        list[_Run], int]:
     """``repeats`` seeded runs and the index of the best, plus up to ``confirm_repeats`` more while no run
     confirms it (they only confirm: the best stays the best of the first ``repeats``)."""
-    runs = [_best_of(problem, cfg.seed + r, hold_translation, clock) for r in range(cfg.repeats)]
+    runs = [_best_of(problem, cfg.seed + r, hold_translation) for r in range(cfg.repeats)]
     best = int(np.argmax([run.score for run in runs]))
     while cfg.repeats > 1 and len(runs) < cfg.repeats + cfg.confirm_repeats and _agreeing(runs, best, cfg) == 0:
-        if clock is not None:
-            clock.runs += 1
-        runs.append(_best_of(problem, cfg.seed + len(runs), hold_translation, clock))
+        runs.append(_best_of(problem, cfg.seed + len(runs), hold_translation))
     return runs, best
 
 
@@ -311,11 +235,10 @@ def slanted_sparse_rings(ring_deg: float, slant_deg: float, config: CalibrationC
 
 
 def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
-              config: CalibrationConfig | None = None, progress: ProgressCallback | None = None) -> CalibrationResult:
+              config: CalibrationConfig | None = None) -> CalibrationResult:
     """Estimate ``T_camera_lidar`` from paired frames, starting at ``T_camera_lidar_init``: ``repeats``
-    seeded swarm + polish runs over one objective; the best-scoring run is returned, with per-axis standard
-    deviations from the objective's curvature and the spread of the runs (``observability.axis_uncertainty``).
-    ``progress`` is called after every swarm iteration (``SearchProgress``).
+    seeded swarm + polish runs over one objective; the best-scoring run is returned and the spread of
+    the runs is the uncertainty.
 
     Raises:
         ProcessingError: no frames, or the camera sees (almost) no lidar points anywhere in the box.
@@ -329,23 +252,19 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     start = time.perf_counter()
     init_scores, _ = problem.frame_scores(centre[None])
     hold = cfg.holds_translation
-    x_replaced: list[NDArray[np.float64]] = []  # the unconfirmed 6-DoF best a held estimate replaced
-    clock = _SearchClock(progress, cfg.repeats, cfg.max_iterations)
-    runs, best_index = _seeded_runs(problem, cfg, hold, clock)
+    turned_deg = 0.0  # rotation between a held estimate and the unconfirmed 6-DoF best it replaced
+    runs, best_index = _seeded_runs(problem, cfg, hold)
     if (cfg.translation == "auto" and not hold and not cfg.wide_box and cfg.repeats > 1
             and _agreeing(runs, best_index, cfg) == 0):  # the translation may be what the runs disagree on
-        clock.runs += cfg.repeats
-        held_runs, held_best = _seeded_runs(problem, cfg, True, clock)
+        held_runs, held_best = _seeded_runs(problem, cfg, hold_translation=True)
         if _agreeing(held_runs, held_best, cfg) > 0:  # fewer unknowns, confirmed: preferred to an unconfirmed 6 DoF
-            x_replaced = [runs[best_index].x]
+            turned_deg = rotation_error_deg(held_runs[held_best].T_camera_lidar, runs[best_index].T_camera_lidar)
             runs, best_index, hold = held_runs, held_best, True
     best_run = runs[best_index]
     score, x_best, iterations = best_run.score, best_run.x, best_run.iterations
     profile = np.full(3, np.nan)
     if not hold and cfg.profile_translation_m > 0:
-        stride = problem.swarm_stride  # on the swarm's objective: its cost stays flat as frames are added
-        profile = translation_profile(problem, x_best, float(problem.evaluate(x_best[None], stride)[0]),
-                                      cfg.profile_translation_m, cfg.profile_rotation_deg, stride)
+        profile = translation_profile(problem, x_best, score, cfg.profile_translation_m, cfg.profile_rotation_deg)
     runtime = time.perf_counter() - start
     final_scores, counts = problem.frame_scores(x_best[None])
     if int(counts.sum()) < cfg.min_points:
@@ -361,18 +280,45 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
                                                                     for T in Ts])))
     agreeing = _agreeing(runs, best_index, cfg)
     weak = weak_axes(profile, cfg.weak_translation_ratio)
-    uncertainty = axis_uncertainty(problem, x_best, problem.free_parameters(hold),
-                                   _spread_runs(runs, best_index, cfg) + x_replaced,
-                                   sampling_floor(_finite_median(problem.ring_spacing_rad, np.degrees),
-                                                  problem.pixel_deg, *problem.typical_range_and_off_axis()))
+    weak_move_m = float(np.linalg.norm([x_best[3 + AXES.index(a)] for a in weak])) if weak else 0.0
+    chance = {"gom": 0.5, "nmi": 1.0, "levinson": 0.0}[cfg.metric]
+    flat = _flat(problem, x_best, score, chance)
     initial_score = float(init_scores.mean())
     moved = (rotation_error_deg(T_best, problem.T_init) > cfg.ok_rotation_deg
              or translation_error_m(T_best, problem.T_init) > cfg.ok_translation_m)
     ring_deg, slant_deg = (_finite_median(problem.ring_spacing_rad, np.degrees),
                            _finite_median(problem.ring_slant_deg))
+    reason = ""
     edge = box_edge(x_best, problem.lower, problem.upper, cfg.box_edge_fraction, problem.free_parameters(hold))
     on_limit = problem.overlap_limited(x_best, cfg.box_edge_fraction) if cfg.min_overlap_fraction > 0 else []
-    reason = _suspect_reason(cfg, score, uncertainty, len(runs), edge, on_limit, ring_deg, slant_deg, auto_angle)
+    if cfg.metric == "gom" and score < cfg.gom_suspect_below:
+        reason = f"GOM {score:.3f} is below {cfg.gom_suspect_below}"
+    elif flat:
+        reason = "flat optimum"
+    elif cfg.metric == "gom" and slanted_sparse_rings(ring_deg, slant_deg, cfg):  # measured on GOM only
+        reason = (f"the lidar's rings lie {ring_deg:.2f} deg apart and cross the image slanted {slant_deg:.0f} deg: "
+                  "sparse rings rolled this far to the camera have come out 0.2-0.6 deg off with 32 beams and 1-7 deg "
+                  f"with 16 (simulated, rolled 35-45 deg; sphere neighbours by angle{', auto' if auto_angle else ''}): "
+                  "treat the estimate as unconfirmed")
+    elif edge:
+        reason = (f"the estimate is at the edge of the search box ({'; '.join(edge)}): the best pose may lie "
+                  "outside it; check the initial guess or widen --search-deg / --search-m")
+    elif on_limit:
+        reason = (f"the estimate sits on the overlap limit ({'; '.join(on_limit)}): fewer lidar points in view "
+                  "would have scored higher; check the initial guess")
+    elif len(runs) > 1 and agreeing == 0:
+        reason = (f"no other of the {len(runs)} seeded runs lands within {cfg.agree_rotation_deg} deg / "
+                  f"{cfg.agree_translation_m} m of the best")
+    elif not cfg.wide_box and weak_move_m > cfg.weak_move_max_m:
+        reason = (f"the translation moved {100 * weak_move_m:.0f} cm along camera axes the log fixes weakly "
+                  f"({', '.join(weak)}); more than {100 * cfg.weak_move_max_m:.0f} cm from a trusted initial "
+                  "guess needs a log with nearer structure, or --translation hold")
+    elif len(runs) == 1 and cfg.wide_box:
+        reason = (f"one seeded run in a wide search box (+-{cfg.search_deg:g} deg, +-{cfg.search_m:g} m) with no "
+                  "other run to confirm it: far optima lie in such a box; use --repeats 2 or more")
+    elif turned_deg > cfg.agree_rotation_deg:
+        reason = (f"the seeded runs disagree; with the translation held they agree on a rotation {turned_deg:.2f} deg "
+                  "from the best 6-DoF run's, so it is not only the translation they disagree on")
     verdict: Verdict
     if reason:
         verdict = "suspect"
@@ -384,62 +330,13 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         T_camera_lidar=T_best, T_camera_lidar_initial=problem.T_init.copy(), score=float(score),
         initial_score=initial_score, frame_scores=final_scores[0], frame_initial_scores=init_scores[0],
         frames_used=len(frames), points_used=list(problem.points_used), runtime_s=runtime,
-        iterations=iterations, evaluations=problem.evaluations, verdict=verdict, verdict_reason=reason,
-        flat=not uncertainty.peaked, std_rotation_deg=uncertainty.rotation_deg,
-        std_translation_m=uncertainty.translation_m, point_evaluations=problem.point_evaluations,
+        iterations=iterations, evaluations=problem.evaluations, verdict=verdict, verdict_reason=reason, flat=flat,
         rotation_std_deg=rot_std, translation_std_m=trans_std, agreeing_repeats=agreeing,
         focal_scale=float(x_best[6]) if x_best.size > 6 else 1.0, metric=cfg.metric,
         gradient_viewpoint=cfg.viewpoint, ring_smoothing_px=max(problem.ring_smoothing_px),
         translation_held=hold, translation_profile=profile,
         weak_translation_axes=weak, ring_spacing_deg=ring_deg,
         sparse_rings=bool(ring_deg > cfg.sparse_rings_above_deg), ring_slant_deg=slant_deg)
-
-
-def _axes_text(values: NDArray[np.float64], scale: float, unit: str) -> str:
-    """``"x 0.12, y 0.40, z 0.08 deg"`` of per-axis values times ``scale``."""
-    return ", ".join(f"{a} {scale * v:.2f}" for a, v in zip(AXES, values, strict=True)) + f" {unit}"
-
-
-def _suspect_reason(cfg: CalibrationConfig, score: float, uncertainty: AxisUncertainty, runs: int,
-                    edge: list[str], on_limit: list[str], ring_deg: float, slant_deg: float,
-                    auto_angle: bool) -> str:
-    """Why the estimate is ``suspect`` and what to do about it (empty: it is not). In order: a score no
-    better than chance, a sparse lidar's rings slanted across the image, an optimum held by the search box
-    or the overlap limit rather than by the data, a single run in a wide box, and two standard deviations
-    (``AxisUncertainty``) on any axis beyond ``confident_rotation_deg`` / ``confident_translation_m``."""
-    rotation_2sd = 2.0 * float(np.max(uncertainty.rotation_deg))
-    translation_2sd = 2.0 * float(np.nanmax(uncertainty.translation_m)) if np.any(
-        np.isfinite(uncertainty.translation_m) | np.isinf(uncertainty.translation_m)) else 0.0
-    if cfg.metric == "gom" and score < cfg.gom_suspect_below:
-        return (f"GOM {score:.3f} is below {cfg.gom_suspect_below}, no better than lidar edges laid on an "
-                "unrelated image: check that the camera and lidar topics see the same scene, and the initial guess")
-    if cfg.metric == "gom" and slanted_sparse_rings(ring_deg, slant_deg, cfg):  # measured on GOM only
-        return (f"the lidar's rings lie {ring_deg:.2f} deg apart and cross the image slanted {slant_deg:.0f} deg: "
-                "sparse rings rolled this far to the camera have come out 0.2-0.6 deg off with 32 beams and 1-7 deg "
-                f"with 16 (simulated, rolled 35-45 deg; sphere neighbours by angle{', auto' if auto_angle else ''}): "
-                "treat the estimate as unconfirmed")
-    if edge:
-        return (f"the estimate is at the edge of the search box ({'; '.join(edge)}): the best pose may lie "
-                "outside it; check the initial guess or widen --search-deg / --search-m")
-    if on_limit:
-        return (f"the estimate sits on the overlap limit ({'; '.join(on_limit)}): fewer lidar points in view "
-                "would have scored higher; check the initial guess")
-    if runs == 1 and cfg.wide_box:
-        return (f"one seeded run in a wide search box (+-{cfg.search_deg:g} deg, +-{cfg.search_m:g} m) with no "
-                "other run to confirm it: far optima lie in such a box; use --repeats 2 or more")
-    if (not uncertainty.peaked or rotation_2sd > cfg.confident_rotation_deg
-            or translation_2sd > cfg.confident_translation_m):
-        flat = "" if uncertainty.peaked else "the score does not fall away from the estimate in every direction; "
-        held = bool(np.all(np.isnan(uncertainty.translation_m)))
-        reach = f"{rotation_2sd:.2f} deg" + ("" if held else f" / {100 * translation_2sd:.1f} cm")
-        axes = _axes_text(uncertainty.rotation_deg, 1.0, "deg") + (
-            "; translation held" if held else f"; {_axes_text(uncertainty.translation_m, 100.0, 'cm')}")
-        advice = "" if held else ", or --translation hold where only the translation is loose"
-        return (f"{flat}two standard deviations of the estimate reach {reach} on its loosest axes, beyond "
-                f"{cfg.confident_rotation_deg:g} deg / {100 * cfg.confident_translation_m:.0f} cm (one, about and "
-                f"along the camera's axes: {axes}): the frames do not fix the pose that well, or the seeded runs "
-                f"disagree; use more frames with near structure at several depths{advice}")
-    return ""
 
 
 def _finite_median(values: list[float], convert: Callable[[float], float] = float) -> float:

@@ -34,13 +34,10 @@ class MetricBatch:
     Attributes:
         scores: (P,) metric value per pose (0 where no point projects).
         counts: (P,) lidar points that project inside the image and its valid mask.
-        weights: (P,) for a metric that is a ratio ``sum_i a_i / sum_i w_i`` over the points (GOM: eq. 11's
-            ``2 sum mu``), its denominator; None for the others. Lets a subset's share of the score be found.
     """
 
     scores: NDArray[np.float64]
     counts: NDArray[np.int64]
-    weights: NDArray[np.float64] | None = None
 
 
 def camera_params(camera: CameraModel) -> NDArray[np.float64]:
@@ -239,23 +236,6 @@ class GomScorer:
             twin.magnitude = np.ascontiguousarray(self.magnitude[::stride])
         return twin
 
-    def thinned(self, stride: int) -> GomScorer:
-        """This scorer on the ``1 / stride`` of its points with the largest lidar gradient magnitude (the
-        points that weigh most in GOM), in their order (same image gradients)."""
-        if stride <= 1:
-            return self
-        n_keep = max(1, self.points.shape[0] // stride)
-        return self.subset(np.sort(np.argsort(-self.magnitude, kind="stable")[:n_keep]))
-
-    def subset(self, index: NDArray[np.integer]) -> GomScorer:
-        """This scorer on the points ``index`` (same image gradients)."""
-        twin = copy.copy(self)
-        twin.points = np.ascontiguousarray(self.points[index])
-        twin.c2 = np.ascontiguousarray(self.c2[index])
-        twin.s2 = np.ascontiguousarray(self.s2[index])
-        twin.magnitude = np.ascontiguousarray(self.magnitude[index])
-        return twin
-
     def score(self, T_camera_lidar_batch: NDArray[np.floating],
               focal_scale: NDArray[np.floating] | None = None) -> MetricBatch:
         poses = pose_batch(T_camera_lidar_batch)
@@ -270,7 +250,7 @@ class GomScorer:
                                               roll2)
         with np.errstate(divide="ignore", invalid="ignore"):
             gom = np.where(den > 0, num / (2.0 * den), 0.0)
-        return MetricBatch(np.asarray(gom), np.asarray(count), 2.0 * np.asarray(den))
+        return MetricBatch(np.asarray(gom), np.asarray(count))
 
 
 class NmiScorer:
@@ -293,17 +273,6 @@ class NmiScorer:
         self.planes = _planes(img / np.float32(255.0) if img.dtype == np.uint8 else img)
         self.mask = _mask(mask, img.shape)
         self.cam = camera_params(camera)
-
-    def thinned(self, stride: int) -> NmiScorer:
-        """This scorer on every ``stride``-th point (same image)."""
-        return self.subset(np.arange(0, self.points.shape[0], stride))
-
-    def subset(self, index: NDArray[np.integer]) -> NmiScorer:
-        """This scorer on the points ``index`` (same image)."""
-        twin = copy.copy(self)
-        twin.points = np.ascontiguousarray(self.points[index])
-        twin.lidar_bin = np.ascontiguousarray(self.lidar_bin[index])
-        return twin
 
     def score(self, T_camera_lidar_batch: NDArray[np.floating],
               focal_scale: NDArray[np.floating] | None = None) -> MetricBatch:
@@ -330,18 +299,6 @@ class LevinsonScorer:
         self.mask = _mask(mask, img.shape)
         self.cam = camera_params(camera)
         self.scale = 1.0 / max(float(np.sum(self.weight)), 1e-12)
-
-    def thinned(self, stride: int) -> LevinsonScorer:
-        """This scorer on every ``stride``-th point (same edge image; the score stays a weighted mean)."""
-        return self.subset(np.arange(0, self.points.shape[0], stride))
-
-    def subset(self, index: NDArray[np.integer]) -> LevinsonScorer:
-        """This scorer on the points ``index`` (same edge image; the score stays a weighted mean)."""
-        twin = copy.copy(self)
-        twin.points = np.ascontiguousarray(self.points[index])
-        twin.weight = np.ascontiguousarray(self.weight[index])
-        twin.scale = 1.0 / max(float(np.sum(twin.weight)), 1e-12)
-        return twin
 
     def score(self, T_camera_lidar_batch: NDArray[np.floating],
               focal_scale: NDArray[np.floating] | None = None) -> MetricBatch:

@@ -36,6 +36,7 @@ from fleetcal.stages.calibration.sphere_gradients import (
     camera_sphere_neighbours,
     compute_sphere_gradients,
     depth_discontinuities,
+    image_plane_gradients,
     lidar_view_gradients,
     ring_spacing_rad,
 )
@@ -43,14 +44,8 @@ from fleetcal.stages.colorize import unoccluded
 
 
 class Scorer(Protocol):
-    points: NDArray[np.float64]  # (N, 3) lidar frame, metres: the points it scores
-
     def score(self, T_camera_lidar_batch: NDArray[np.floating],
               focal_scale: NDArray[np.floating] | None = None) -> MetricBatch: ...
-
-    def thinned(self, stride: int) -> Scorer: ...
-
-    def subset(self, index: NDArray[np.integer]) -> Scorer: ...
 
 
 def delta_transforms(x: NDArray[np.floating]) -> NDArray[np.float64]:
@@ -181,10 +176,6 @@ class CalibrationProblem:
                                                  * default_blur_sigma_px(f.camera.width)), config.explore_stride)
                 for f, scorers in zip(frames, channels, strict=True)]
         self.evaluations = 0
-        self.point_evaluations = 0
-        self._thinned: dict[int, list[list[Scorer]]] = {1: self.scorers}
-        self._blocks: tuple[int, list[list[list[Scorer]]]] = (0, [])  # block_scores' scorers, made on demand
-        self.on_iteration: Callable[[int, float], None] | None = None  # called after each swarm iteration
         centre = np.zeros((1, self.dim)) + 0.5 * (self.lower + self.upper)
         init_counts = self._channel_counts(centre)
         self.min_counts = [np.maximum(config.min_points, np.floor(config.min_overlap_fraction * c)).astype(np.int64)
@@ -281,14 +272,16 @@ class CalibrationProblem:
                                          neighbours=neighbours)
         else:
             grads = compute_sphere_gradients(pts, feat, T_cam_lidar, k=cfg.sphere_k,
-                                             fit=cfg.fit,
+                                             normalise=cfg.normalise_gradients, fit=cfg.fit,
                                              neighbours_by=cfg.neighbours_on("camera"), neighbours=neighbours)
-        magnitude = grads.magnitude
+        magnitude = grads.magnitude if cfg.lidar_magnitude == "paper" else np.hypot(grads.gx, grads.gy)
         sel = magnitude > 0
         if cfg.keep_fraction < 1.0 and np.any(sel):
             cut = np.quantile(magnitude[sel], 1.0 - cfg.keep_fraction)
             sel &= magnitude >= cut
         gx, gy = grads.gx[sel], grads.gy[sel]
+        if cfg.lidar_gradient_axes == "image":
+            gx, gy = image_plane_gradients(apply(T_cam_lidar, pts[sel]), gx, gy, f.camera)
         scorer = GomScorer(pts[sel], gx, gy, magnitude[sel], image, f.camera,
                            T_cam_lidar[:3, :3] if cfg.turn_gradients_with_roll else None)
         return scorer, int(sel.sum()), grads.neighbours
@@ -303,40 +296,28 @@ class CalibrationProblem:
         rv = Rotation.from_matrix(T_delta[:3, :3]).as_rotvec(degrees=True)
         return np.concatenate([rv, T_delta[:3, 3]])
 
-    @property
-    def total_points(self) -> int:
-        """Lidar points scored per candidate over all frames and scorers."""
-        return sum(int(s.points.shape[0]) for scorers in self.scorers for s in scorers)
-
-    def _scorers_at(self, stride: int) -> list[list[Scorer]]:
-        """The frames' scorers on every ``stride``-th point (made once per stride)."""
-        if stride not in self._thinned:
-            self._thinned[stride] = [[s.thinned(stride) for s in scorers] for scorers in self.scorers]
-        return self._thinned[stride]
-
-    def _batches(self, x: NDArray[np.floating], explore: bool = False, stride: int = 1) -> list[list[MetricBatch]]:
+    def _batches(self, x: NDArray[np.floating], explore: bool = False) -> list[list[MetricBatch]]:
         """Metric batches per frame and feature channel for parameters (P, D) (``explore``: against the
-        blurred image gradients; ``stride``: on every stride-th point)."""
+        blurred image gradients)."""
         x = np.atleast_2d(np.asarray(x, dtype=np.float64))
         T_c0 = delta_transforms(x) @ self.T_init
         focal = x[:, 6] if x.shape[1] > 6 else None
         self.evaluations += x.shape[0]
-        levels = self.explore_scorers if explore else self._scorers_at(stride)
-        self.point_evaluations += x.shape[0] * sum(int(s.points.shape[0]) for scorers in levels for s in scorers)
         return [[scorer.score(T_c_c0 @ T_c0, focal) for scorer in scorers]
-                for scorers, T_c_c0 in zip(levels, self.T_camera_camera0, strict=True)]
+                for scorers, T_c_c0 in zip(self.explore_scorers if explore else self.scorers,
+                                           self.T_camera_camera0, strict=True)]
 
     def _channel_counts(self, x: NDArray[np.floating]) -> list[NDArray[np.int64]]:
         """Projected points per frame and channel of the first candidate of x."""
         return [np.array([b.counts[0] for b in frame], dtype=np.int64) for frame in self._batches(x)]
 
-    def frame_scores(self, x: NDArray[np.floating], explore: bool = False, stride: int = 1) -> tuple[
+    def frame_scores(self, x: NDArray[np.floating], explore: bool = False) -> tuple[
             NDArray[np.float64], NDArray[np.int64]]:
         """Per-frame scores (mean over the frame's scorers: feature channels and their ring-smoothed twins;
         a scorer projecting fewer points than its minimum scores 0) and projected-point counts (largest
         over scorers), each (P, F), of parameters (P, D)."""
-        batches = self._batches(x, explore, stride)
-        per_point = self.config.explore_stride if explore else stride  # points one scored point stands for
+        batches = self._batches(x, explore)
+        per_point = self.config.explore_stride if explore else 1  # points one explore point stands for
         n = np.atleast_2d(np.asarray(x)).shape[0]
         scores = np.zeros((n, len(batches)))
         counts = np.zeros((n, len(batches)), dtype=np.int64)
@@ -362,58 +343,9 @@ class CalibrationProblem:
                     break
         return limited
 
-    def evaluate(self, x: NDArray[np.floating], stride: int = 1) -> NDArray[np.float64]:
-        """Mean score over frames for parameters (P, D) -> (P,) (``stride``: on every stride-th point)."""
-        return np.asarray(self.frame_scores(x, stride=stride)[0].mean(axis=1))
-
-    @property
-    def pixel_deg(self) -> float:
-        """Angle a pixel of the (first frame's) camera spans at its principal point, degrees."""
-        camera = self.frames[0].camera
-        return float(np.degrees(1.0 / max(camera.fx, camera.fy)))
-
-    def typical_range_and_off_axis(self) -> tuple[float, float]:
-        """Median distance (metres) of the scored points from their camera at the initial guess, and the median
-        of their off-axis tangent (``hypot(x, y) / z`` in the camera's optical frame, points in front of it;
-        at most 1)."""
-        points = np.concatenate([apply(T_c_c0 @ self.T_init, scorers[0].points)
-                                 for scorers, T_c_c0 in zip(self.scorers, self.T_camera_camera0, strict=True)])
-        front = points[points[:, 2] > 0]
-        tangent = np.hypot(front[:, 0], front[:, 1]) / front[:, 2]
-        return (float(np.median(np.linalg.norm(points, axis=1))),
-                min(float(np.median(tangent)), 1.0) if tangent.size else float("nan"))
-
-    def unit_scores(self, x_ref: NDArray[np.floating], x: NDArray[np.floating], blocks: int) -> NDArray[np.float64]:
-        """Shares (P, F * blocks) of the mean score at parameters x (P, D) of each unit: every frame's points cut
-        into ``blocks`` runs of consecutive points (points are in image order: each a band of the image). The
-        shares sum to the mean score's change about ``x_ref`` (D,) to first order, so the units' gradients at
-        ``x_ref`` sum to its gradient: a ratio metric (GOM, ``MetricBatch.weights``) counts a block by its
-        numerator less the reference score times its weight, over the reference weight; the others by the
-        block's own score over the blocks. The units of ``observability.curvature_covariance``."""
-        if self._blocks[0] != blocks:
-            self._blocks = (blocks, [[[s.subset(np.array_split(np.arange(s.points.shape[0]), blocks)[b])
-                                       for s in scorers] for b in range(blocks)] for scorers in self.scorers])
-        x = np.atleast_2d(np.asarray(x, dtype=np.float64))
-        ref = np.atleast_2d(np.asarray(x_ref, dtype=np.float64))
-        T_c0 = delta_transforms(x) @ self.T_init
-        T_ref = delta_transforms(ref) @ self.T_init
-        focal = x[:, 6] if x.shape[1] > 6 else None
-        focal_ref = ref[:, 6] if ref.shape[1] > 6 else None
-        self.evaluations += x.shape[0] + 1
-        n_frames = len(self.scorers)
-        columns = []
-        for scorers, parts, T_c_c0 in zip(self.scorers, self._blocks[1], self.T_camera_camera0, strict=True):
-            at_ref = [s.score(T_c_c0 @ T_ref, focal_ref) for s in scorers]
-            for part in parts:
-                share = np.zeros(x.shape[0])
-                for whole, block in zip(at_ref, part, strict=True):
-                    b = block.score(T_c_c0 @ T_c0, focal)
-                    if b.weights is not None and whole.weights is not None and whole.weights[0] > 0:
-                        share += (b.scores * b.weights - whole.scores[0] * b.weights) / whole.weights[0]
-                    else:
-                        share += b.scores / blocks
-                columns.append(share / (len(scorers) * n_frames))
-        return np.column_stack(columns)
+    def evaluate(self, x: NDArray[np.floating]) -> NDArray[np.float64]:
+        """Mean score over frames for parameters (P, D) -> (P,)."""
+        return np.asarray(self.frame_scores(x)[0].mean(axis=1))
 
     def evaluate_explore(self, x: NDArray[np.floating]) -> NDArray[np.float64]:
         """``evaluate`` against the blurred image gradients of the exploration phase."""
@@ -427,20 +359,9 @@ class CalibrationProblem:
             free[3:6] = False
         return np.asarray(free)
 
-    @property
-    def swarm_stride(self) -> int:
-        """Thinning of the swarm's objective: the swarm scores about ``CalibrationConfig.swarm_points`` points
-        over all frames (``Scorer.thinned``: GOM keeps the points with the strongest lidar gradients), the
-        polish every point. NMI and Levinson fly on every point."""
-        if self.config.metric != "gom":
-            return 1
-        return max(1, round(self.total_points / self.config.swarm_points))
-
     def optimise(self, seed: int, hold_translation: bool = False) -> tuple[SwarmResult, SwarmResult | None]:
         """One seeded swarm (+ polish) run over the free parameters (``free_parameters``); the others stay
-        at the box's centre (the initial guess). The swarm flies on the thinned objective
-        (``swarm_stride``), the pattern-search polish climbs the full one from its best. Results are given
-        in all D parameters; the swarm's best score is the thinned objective's."""
+        at the box's centre (the initial guess). Results are given in all D parameters."""
         cfg = self.config
         free = self.free_parameters(hold_translation)
         centre = 0.5 * (self.lower + self.upper)
@@ -453,18 +374,15 @@ class CalibrationProblem:
         def in_full(result: SwarmResult) -> SwarmResult:
             return dataclasses.replace(result, best_x=full(result.best_x)[0])
 
-        stride = self.swarm_stride
         lower, upper = self.lower[free], self.upper[free]
-        swarm = particle_swarm(on_free(partial(self.evaluate, stride=stride)), lower, upper,
-                               n_particles=cfg.n_particles, max_iterations=cfg.max_iterations,
-                               stall_iterations=cfg.stall_iterations, min_iterations=cfg.min_iterations,
-                               score_tolerance=cfg.swarm_tolerance, seed=seed, x_initial=centre[free],
+        swarm = particle_swarm(on_free(self.evaluate), lower, upper, n_particles=cfg.n_particles,
+                               max_iterations=cfg.max_iterations, stall_iterations=cfg.stall_iterations,
+                               min_iterations=cfg.min_iterations, score_tolerance=cfg.swarm_tolerance,
+                               seed=seed, x_initial=centre[free],
                                explore_objective=on_free(self.evaluate_explore) if self.explore_scorers else None,
-                               explore_iterations=cfg.explore_phase_iterations, on_iteration=self.on_iteration)
+                               explore_iterations=cfg.explore_phase_iterations)
         if not cfg.polish:
-            if stride > 1:
-                swarm.best_score = float(on_free(self.evaluate)(swarm.best_x[None])[0])
             return in_full(swarm), None
         polish = pattern_search(on_free(self.evaluate), swarm.best_x, 0.1 * (upper - lower), lower, upper,
-                                min_step_fraction=0.005, score_at_x0=swarm.best_score if stride == 1 else None)
+                                min_step_fraction=0.005, score_at_x0=swarm.best_score)
         return in_full(swarm), in_full(polish)

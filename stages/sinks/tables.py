@@ -30,9 +30,6 @@ RPY_FIELDS: list[tuple[str, pa.DataType]] = [
 ]
 """The same rotation as xyz-extrinsic roll, pitch, yaw in degrees (beside ``POSE_FIELDS``)."""
 
-STD_COLUMNS = ("std_rx_deg", "std_ry_deg", "std_rz_deg", "std_tx_m", "std_ty_m", "std_tz_m")
-"""Per-axis standard deviations of a calibration: rotation about / translation along the camera's x, y, z."""
-
 CALIBRATION_SCHEMA = pa.schema(
     [
         ("lidar_topic", pa.string()),
@@ -47,10 +44,6 @@ CALIBRATION_SCHEMA = pa.schema(
         ("initial_score", pa.float64()),
         ("frames_used", pa.int64()),
         ("runtime_s", pa.float64()),
-        ("verdict", pa.string()),
-        ("verdict_reason", pa.string()),
-        *[(name, pa.float64()) for name in STD_COLUMNS],
-        ("initialisation", pa.string()),
     ]
 )
 
