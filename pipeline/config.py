@@ -131,17 +131,9 @@ class CalibrationConfig:
         metric: alignment metric.
         feature: lidar per-point feature (GOM section 3.1), one of ``LIDAR_FEATURES`` or several
             joined by ``+`` (``range+normals``: each feature gets its own lidar gradients and the
-            frame's score is their mean). Default ``range+normals``, chosen with the paper's camera
-            sphere by evidence over the real logs and the simulator (3 repeats, from the logs' tf;
-            range alone in brackets): KITTI 0.133 deg / 7.2 cm (0.142 / 8.0), PJLab rig1 0.186 / 27
-            (6.69 / 29), simulated street 640x360 0.545 / 16 (3.93 / 30), nuScenes joint 1.52 / 26
-            (0.37 / 22); with the lidar viewpoint (the ``auto`` default), nuScenes joint
-            0.53 deg (range 0.51). Re-checked with the lidar viewpoint (``benchmarks/bench_starts.py
-            --starts 2 --features ...``: KITTI, PJLab rig2, rig1, nuScenes, each from its tf and 2 starts 2 deg /
-            12 cm off; within 0.5 deg / 15 cm, and outside that yet not ``suspect``): range+normals 7 of 12
-            within, 3 wrong (nuScenes' 0.55-0.66 deg); normals 4, 1 (KITTI 0.16-0.17 deg, rig2 1.9-7.7, nuScenes
-            1.3-3.1 ``suspect``); range 1, 5 (KITTI 0.9-2.1 deg); range+intensity 3, 5 (KITTI 0.25-0.63 deg).
-            Runtime about 2x that of one feature.
+            frame's score is their mean; about twice the runtime of one feature). The default is the
+            combination that came out within 0.5 deg / 15 cm most often over the real logs from drifted
+            starts (``benchmarks/bench_starts.py``; ``docs/accuracy.md``).
         frames: lidar/camera pairs used.
         particles: particle swarm size.
         iterations: particle swarm iterations.
@@ -152,14 +144,8 @@ class CalibrationConfig:
             one another and the box is within 5 deg / 0.5 m (the initial guess is trusted); evidence in
             ``stages.calibration.config.CalibrationConfig``.
         blur_sigma_px: Gaussian blur of camera images before the Sobel, pixels (0: max(2, width / 620)).
-        k_neighbours: neighbours for lidar normals and sphere gradients.
         seed: random seed.
         repeats: seeded optimiser runs; their spread is the reported uncertainty.
-        confirm_repeats: while no other run lands within 0.5 deg / 15 cm of the best, up to this many
-            more are made (they only confirm it); if none does, the verdict is ``suspect``. 0 bounds the
-            runtime of batch jobs at ``repeats`` runs, or twice that with ``translation = "auto"``, which
-            then makes the runs again with the translation held.
-        keep_fraction: GOM only: fraction of in-view points with the largest lidar gradient kept.
         estimate_focal: also estimate a common scale of fx and fy.
         min_points: scans with fewer points are skipped.
         motion_compensation: move lidar points to the camera stamp with the log's /tf odometry.
@@ -167,27 +153,10 @@ class CalibrationConfig:
             its stamp) moves each point from its own capture time, with the lidar's velocity over the
             sweep from /tf; false: the whole scan from its stamp (for clouds the driver de-skewed but
             that still carry their firing times).
-        occlusion_filter: drop lidar points hidden from the camera at the initial guess (z-buffer).
-        gradient_viewpoint: where lidar gradients are taken: ``camera`` (paper: sphere at the camera at
-            the initial guess), ``lidar`` (the lidar's own sphere, edge directions carried into the
-            camera's view) or ``auto`` (default: lidar, the more robust from drifted starts); evidence in
-            ``stages.calibration.config.CalibrationConfig`` and ``benchmarks/bench_starts.py``.
-        gradient_fit: ``paper`` (Algorithm 1), ``lsq`` (least-squares gradient over the neighbours) or
-            ``auto`` (lsq on the lidar's sphere, paper on the camera's).
-        gradient_neighbours: ``angle`` (paper), ``sampling`` (neighbours across a sparse lidar's rings) or
-            ``auto`` (sampling on the lidar's sphere, angle on the camera's and where rings over 1 deg apart
-            cross the image slanted more than 30 deg: ``CalibrationConfig.slanted_rings_above_deg``).
-        explore: GOM swarm's first 30 iterations against image gradients blurred 3x more (wider basins):
-            ``on``, ``off`` or ``auto`` (default: on for boxes wider than 5 deg or 0.5 m); evidence in
-            ``stages.calibration.config.CalibrationConfig``.
         camera_model: projection of the images: ``log`` (default: the CameraInfo's distortion model) or
             one that replaces it with the same K and D: ``plumb_bob``, ``rational_polynomial``,
             ``equidistant`` (fisheye), ``cylindrical`` (the GOM paper's panoramic model, eq. 6: u =
             fx * azimuth + cx, v = fy * y / sqrt(x^2 + z^2) + cy) or ``none`` (pinhole, D ignored).
-        ring_smoothing: GOM also scores each frame against its image gradients smoothed across the
-            lidar's rings by a third of their spacing (against aliasing by a sparse lidar's rings): ``on``,
-            ``off`` or ``auto`` (default: on where that is more than the image blur, e.g. 32 or 16 beams);
-            evidence in ``stages.calibration.config.CalibrationConfig``.
     """
 
     metric: Literal["gom", "nmi", "levinson"] = "gom"
@@ -199,21 +168,12 @@ class CalibrationConfig:
     search_m: float = 0.5
     translation: Literal["auto", "estimate", "hold"] = "auto"
     blur_sigma_px: float = 0.0
-    k_neighbours: int = 8
     seed: int = 0
     repeats: int = 3
-    confirm_repeats: int = 3
-    keep_fraction: float = 0.5
     estimate_focal: bool = False
     min_points: int = 100
     motion_compensation: bool = True
     point_times: bool = True
-    occlusion_filter: bool = False
-    gradient_viewpoint: Literal["auto", "camera", "lidar"] = "auto"
-    gradient_fit: Literal["auto", "paper", "lsq"] = "auto"
-    gradient_neighbours: Literal["auto", "angle", "sampling"] = "auto"
-    explore: Literal["auto", "on", "off"] = "auto"
-    ring_smoothing: Literal["auto", "on", "off"] = "auto"
     camera_model: Literal["log", "plumb_bob", "rational_polynomial", "equidistant", "cylindrical", "none"] = "log"
 
     def validate(self) -> None:
@@ -224,10 +184,7 @@ class CalibrationConfig:
         _require(0 <= self.search_deg <= 180, "calibration.search_deg", "must be in [0, 180]")
         _require(self.search_m >= 0, "calibration.search_m", "must be >= 0")
         _require(self.blur_sigma_px >= 0, "calibration.blur_sigma_px", "must be >= 0")
-        _require(self.k_neighbours >= 2, "calibration.k_neighbours", "must be >= 2")
         _require(self.repeats >= 1, "calibration.repeats", "must be >= 1")
-        _require(self.confirm_repeats >= 0, "calibration.confirm_repeats", "must be >= 0")
-        _require(0 < self.keep_fraction <= 1, "calibration.keep_fraction", "must be in (0, 1]")
         _require(self.min_points >= 0, "calibration.min_points", "must be >= 0")
 
 

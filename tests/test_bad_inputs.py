@@ -29,7 +29,10 @@ from fleetcal.workflows.cli import main
 from tests import badinputs as bi
 
 REPO = Path(__file__).resolve().parents[1]
-CALIBRATE_FAST = ["--frames", "1", "--particles", "20", "--no-report", "--workers", "0", "-q"]
+CALIBRATE_FAST = ["--frames", "1", "--no-report", "--workers", "0", "-q"]
+FAST_SOLVER = {"FLEETCAL_CALIBRATION__PARTICLES": "20", "FLEETCAL_CALIBRATION__REPEATS": "1",
+               "FLEETCAL_CALIBRATION__TRANSLATION": "hold"}
+"""A small swarm, one run, rotation only: every calibrate case here is about its input, not accuracy."""
 MAP_FAST = ["--workers", "0", "-q"]
 CASE_TIMEOUT_S = 60.0
 
@@ -48,6 +51,12 @@ class Case:
 
 
 # --- case builders ------------------------------------------------------------------------------
+
+
+@pytest.fixture(autouse=True)
+def fast_solver(monkeypatch: pytest.MonkeyPatch) -> None:
+    for name, value in FAST_SOLVER.items():
+        monkeypatch.setenv(name, value)
 
 
 def good(tmp: Path, name: str = "good.mcap", **spec: Any) -> Path:
@@ -276,14 +285,6 @@ CASES: list[Case] = [  # the corpus table: one case per line, long lines kept fo
             str(good(tmp, frames=4, mutate_image=bi.only_frame(0, bi.set_attrs(step=bi.WIDTH - 1)))),
             "--frames",
             "4",
-            "--particles",
-            "20",
-            "--repeats",
-            "1",
-            "--confirm-repeats",
-            "0",
-            "--translation",
-            "hold",
             "--no-report",
             "--workers",
             "0",
@@ -568,7 +569,6 @@ frames = 1
 particles = 20
 iterations = 20
 repeats = 1
-confirm_repeats = 0
 translation = "hold"
 
 [engine]

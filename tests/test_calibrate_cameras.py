@@ -1,4 +1,4 @@
-"""``fleetcal calibrate --camera-camera``: recover a known affine warp between two image topics."""
+"""``fleetcal calibrate-cameras``: recover a known affine warp between two image topics."""
 
 from __future__ import annotations
 
@@ -77,8 +77,8 @@ def test_camera_camera_recovers_known_affine(tmp_path: Path, capsys: pytest.Capt
     write_rig_log(log_path, n_frames=6, moving_offset_ns=3_000_000)
     out = tmp_path / "out"
     rc = main([
-        "calibrate", str(log_path), "--camera-camera", "--camera", "/cam_a/image_raw",
-        "--camera", "/cam_b/image_raw", "--frames", "3", "--particles", "100", "--json", "-q", "--out", str(out),
+        "calibrate-cameras", str(log_path), "--camera", "/cam_a/image_raw",
+        "--camera", "/cam_b/image_raw", "--frames", "3", "--json", "-q", "--out", str(out),
     ])  # fmt: skip
     assert rc == 0
     result = json.loads(capsys.readouterr().out)["camera_camera"]
@@ -111,19 +111,21 @@ def test_camera_camera_recovers_known_affine(tmp_path: Path, capsys: pytest.Capt
 def test_camera_camera_needs_exactly_two_cameras(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     log_path = tmp_path / "rig.mcap"
     write_rig_log(log_path, n_frames=1, moving_offset_ns=0)
-    base = ["calibrate", str(log_path), "--camera-camera", "--out", str(tmp_path / "out")]
+    base = ["calibrate-cameras", str(log_path), "--out", str(tmp_path / "out")]
     assert main([*base, "--camera", "/cam_a/image_raw"]) == 2
     assert "exactly two --camera" in capsys.readouterr().err
     three = ["--camera", "/cam_a/image_raw", "--camera", "/cam_b/image_raw", "--camera", "/cam_c/image_raw"]
     assert main([*base, *three]) == 2
-    assert main(base) == 2
+    with pytest.raises(SystemExit) as no_camera:
+        main(base)
+    assert no_camera.value.code == 2
     assert not (tmp_path / "out").exists()
 
 
 def test_camera_camera_no_pairs_within_tolerance(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     log_path = tmp_path / "rig.mcap"
     write_rig_log(log_path, n_frames=3, moving_offset_ns=10_000_000_000)  # /cam_b starts after /cam_a ends
-    rc = main(["calibrate", str(log_path), "--camera-camera", "--camera", "/cam_a/image_raw",
+    rc = main(["calibrate-cameras", str(log_path), "--camera", "/cam_a/image_raw",
                "--camera", "/cam_b/image_raw", "--out", str(tmp_path / "out")])  # fmt: skip
     assert rc == 1
     err = capsys.readouterr().err.strip()

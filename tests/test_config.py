@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import sys
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -71,7 +72,6 @@ def test_precedence_file_then_env_then_cli(tmp_path: Path) -> None:
         ({"FLEETCAL_IO__ALLOW_TRUNCATED": "maybe"}, r"io\.allow_truncated.*boolean"),
         ({"FLEETCAL_MAPPING__VOXEL_M": "nan"}, r"mapping\.voxel_m.*finite"),
         ({"FLEETCAL_CALIBRATION__PARTICLES": "0"}, r"calibration\.particles: must be >= 1"),
-        ({"FLEETCAL_CALIBRATION__CONFIRM_REPEATS": "-1"}, r"calibration\.confirm_repeats: must be >= 0"),
     ],
 )
 def test_bad_environment_values_name_the_key(env: dict[str, str], match: str) -> None:
@@ -164,63 +164,42 @@ def test_new_fields_and_lists_convert_by_type(monkeypatch: pytest.MonkeyPatch) -
 
 
 def test_gradient_settings_follow_the_viewpoint() -> None:
-    """``auto``: the lidar's own sphere (least squares, neighbours across rings) in every box, exploring
-    only in wide ones; the paper's camera sphere (Algorithm 1, nearest-by-angle neighbours) on request;
-    explicit choices win."""
+    """The solver's ``auto``: the lidar's own sphere (least squares, neighbours across rings) in every box,
+    exploring only in wide ones; the paper's camera sphere (Algorithm 1, nearest-by-angle neighbours) where
+    code asks for it; explicit choices win. These are solver internals, not user settings."""
     from fleetcal.workflows.calibrate import solver_config
 
-    config = Config()
-    assert config.calibration.gradient_viewpoint == "auto"
-    solver = solver_config(config)
+    solver = solver_config(Config())
     assert (solver.viewpoint, solver.fit, solver.neighbours_on("lidar")) == ("lidar", "lsq", "sampling")
     assert not solver.explores and not solver.wide_box
-    config.calibration.search_m = 1.0
-    solver = solver_config(config)
+    solver = solver_config(load_config(env={"FLEETCAL_CALIBRATION__SEARCH_M": "1.0"}))
     assert (solver.viewpoint, solver.fit, solver.neighbours_on("lidar")) == ("lidar", "lsq", "sampling")
     assert solver.explores and solver.wide_box
     assert solver.neighbours_on("camera") == "angle"  # Levinson's depth jumps stay on the camera sphere
-    config.calibration.gradient_viewpoint = "camera"
-    solver = solver_config(config)
-    assert (solver.viewpoint, solver.fit, solver.neighbours_on("camera")) == ("camera", "paper", "angle")
-    config.calibration.gradient_viewpoint = "camera"
-    config.calibration.gradient_neighbours = "sampling"
-    config.calibration.gradient_fit = "lsq"
-    solver = solver_config(config)
-    assert (solver.viewpoint, solver.fit, solver.neighbours_on("camera")) == ("camera", "lsq", "sampling")
+    camera = replace(solver, gradient_viewpoint="camera")
+    assert (camera.viewpoint, camera.fit, camera.neighbours_on("camera")) == ("camera", "paper", "angle")
+    camera = replace(camera, neighbours_by="sampling", gradient_fit="lsq")
+    assert (camera.viewpoint, camera.fit, camera.neighbours_on("camera")) == ("camera", "lsq", "sampling")
     with pytest.raises(ConfigError, match="neighbours_by"):
         replace(solver, neighbours_by="rings").validate()
-
-
-def test_confirm_repeats_reaches_the_solver() -> None:
-    from fleetcal.workflows.calibrate import solver_config
-
-    assert solver_config(Config()).confirm_repeats == 3
-    config = load_config(env={"FLEETCAL_CALIBRATION__CONFIRM_REPEATS": "0"})
-    assert solver_config(config).confirm_repeats == 0
-
-
-def test_ring_smoothing_reaches_the_solver_and_rejects_other_values() -> None:
-    from fleetcal.workflows.calibrate import solver_config
-
-    assert solver_config(Config()).ring_smoothing == "auto"
-    config = load_config(env={"FLEETCAL_CALIBRATION__RING_SMOOTHING": "off"})
-    assert solver_config(config).ring_smoothing == "off"
-    with pytest.raises(ConfigError, match=r"calibration\.ring_smoothing.*auto, on, off"):
-        load_config(env={"FLEETCAL_CALIBRATION__RING_SMOOTHING": "maybe"})
     with pytest.raises(ConfigError, match="ring_smoothing"):
-        replace(solver_config(Config()), ring_smoothing_fraction=0.0).validate()
+        replace(solver, ring_smoothing_fraction=0.0).validate()
 
 
-def test_translation_flag_reaches_the_solver_and_a_zero_box_holds_it() -> None:
+def test_solver_internals_are_not_user_settings() -> None:
+    """Settings of the solver's internals are rejected in the user configuration (exit 2 from the CLI)."""
+    for key in ("GRADIENT_VIEWPOINT", "RING_SMOOTHING", "CONFIRM_REPEATS", "KEEP_FRACTION", "EXPLORE"):
+        with pytest.raises(ConfigError, match=key.lower()):
+            load_config(env={f"FLEETCAL_CALIBRATION__{key}": "1"})
+
+
+def test_translation_setting_reaches_the_solver_and_a_zero_box_holds_it() -> None:
     from fleetcal.workflows.calibrate import solver_config
-    from fleetcal.workflows.cli import build_parser
-    from fleetcal.workflows.cmd_calibrate import overrides
 
-    parser = build_parser()
     assert solver_config(Config()).translation == "auto"
     assert not solver_config(Config()).holds_translation
-    held = overrides(parser.parse_args(["calibrate", "x.mcap", "--out", "o", "--translation", "hold"]))
-    assert solver_config(load_config(env={}, overrides=held)).holds_translation
+    held = load_config(env={"FLEETCAL_CALIBRATION__TRANSLATION": "hold"})
+    assert solver_config(held).holds_translation
     zero_box = solver_config(load_config(env={"FLEETCAL_CALIBRATION__SEARCH_M": "0"}))
     zero_box.validate()
     assert zero_box.holds_translation
@@ -228,32 +207,32 @@ def test_translation_flag_reaches_the_solver_and_a_zero_box_holds_it() -> None:
         load_config(env={"FLEETCAL_CALIBRATION__TRANSLATION": "free"})
     with pytest.raises(ConfigError, match="translation"):
         replace(solver_config(Config()), translation="free").validate()
+
+
+def test_calibrate_keeps_a_dozen_options_of_its_own() -> None:
+    """``calibrate`` has at most 12 options besides the ones every command takes; the camera-to-camera
+    affine mode is its own command."""
+    from fleetcal.workflows.cli import build_parser, common_options
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    common = {s for a in common_options()._actions for s in a.option_strings}
+    own = [a for a in sub.choices["calibrate"]._actions if a.option_strings and not set(a.option_strings) & common
+           and "--help" not in a.option_strings]
+    assert len(own) <= 12, [a.option_strings for a in own]
+    args = parser.parse_args(["calibrate-cameras", "x.mcap", "--camera", "/a", "--camera", "/b", "--out", "o"])
+    assert args.camera == ["/a", "/b"]
     with pytest.raises(SystemExit):
-        parser.parse_args(["calibrate", "x.mcap", "--out", "o", "--translation", "free"])
+        parser.parse_args(["calibrate", "x.mcap", "--out", "o", "--camera-camera"])
 
 
-def test_no_point_times_flag_reaches_the_config() -> None:
-    from fleetcal.workflows.cli import build_parser
-    from fleetcal.workflows.cmd_calibrate import overrides
-
-    parser = build_parser()
-    on = overrides(parser.parse_args(["calibrate", "x.mcap", "--out", "o"]))
-    off = overrides(parser.parse_args(["calibrate", "x.mcap", "--out", "o", "--no-point-times"]))
+def test_point_times_setting_reaches_the_config() -> None:
     assert Config().calibration.point_times is True
-    assert load_config(env={}, overrides=on).calibration.point_times is True
-    assert load_config(env={}, overrides=off).calibration.point_times is False
+    assert load_config(env={}).calibration.point_times is True
+    assert load_config(env={"FLEETCAL_CALIBRATION__POINT_TIMES": "false"}).calibration.point_times is False
 
 
-def test_rectified_topic_flags_and_environment_reach_the_config() -> None:
-    from fleetcal.workflows.cli import build_parser
-    from fleetcal.workflows.cmd_calibrate import overrides
-
-    parser = build_parser()
-    args = parser.parse_args(["calibrate", "x.mcap", "--out", "o", "--rectified-topic", "/a/image",
-                              "--rectified-topic", "/b/image"])
+def test_rectified_topics_setting_reaches_the_config() -> None:
     assert Config().io.rectified_topics == []
-    assert load_config(env={}, overrides=overrides(args)).io.rectified_topics == ["/a/image", "/b/image"]
-    none = overrides(parser.parse_args(["calibrate", "x.mcap", "--out", "o"]))
-    assert load_config(env={}, overrides=none).io.rectified_topics == []
     env = {"FLEETCAL_IO__RECTIFIED_TOPICS": "/c/image,/d/image"}
     assert load_config(env=env).io.rectified_topics == ["/c/image", "/d/image"]

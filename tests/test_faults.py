@@ -85,7 +85,9 @@ def test_full_output_filesystem_gives_clear_error_and_no_partial_files(
     before = sha256_and_mtime(log)
     fill(tiny_fs, leave_bytes=8 * 1024)
     out = tiny_fs / "out"
-    extra = ["--workers", "0"] if command == "map" else ["--frames", "1", "--particles", "20"]
+    config = tmp_path / "fast.toml"
+    config.write_text(FAST_CONFIG)
+    extra = ["--workers", "0"] if command == "map" else ["--config", str(config)]
     outcome = run_cli([command, str(log), *extra, "-q", "--out", str(out)])
     assert outcome.exit_code == 1, outcome.stderr
     error = one_error_line(outcome.stderr)
@@ -172,7 +174,7 @@ def test_no_command_opens_an_input_log_for_writing(fmt: str, tmp_path: Path) -> 
     before = sha256_and_mtime(log)
     commands = [
         ["inspect", str(log)],
-        ["calibrate", str(log), "--frames", "1", "--particles", "20", "--no-report"],
+        ["calibrate", str(log), "--config", str(config), "--no-report"],
         ["map", str(log)],
         ["process", str(log), "--frames", "1", "--config", str(config)],
     ]

@@ -122,16 +122,7 @@ def solver_config(config: Config) -> SolverConfig:
         max_iterations=c.iterations,
         seed=c.seed,
         repeats=c.repeats,
-        confirm_repeats=c.confirm_repeats,
-        keep_fraction=c.keep_fraction,
-        sphere_k=c.k_neighbours,
         estimate_focal=c.estimate_focal,
-        occlusion_filter=c.occlusion_filter,
-        gradient_viewpoint=c.gradient_viewpoint,
-        gradient_fit=c.gradient_fit,
-        neighbours_by=c.gradient_neighbours,
-        explore=c.explore,
-        ring_smoothing=c.ring_smoothing,
     )
 
 

@@ -1,4 +1,4 @@
-"""Recipe: camera-camera calibration of one log (GOM paper 3.2.2), ``fleetcal calibrate --camera-camera``.
+"""Recipe: camera-camera calibration of one log (GOM paper 3.2.2), ``fleetcal calibrate-cameras``.
 
 Steps: pair the two image topics by header stamp (nearest within ``io.pairing_tolerance_ns``) ->
 keep ``calibration.frames`` pairs spread over the log -> gradients of each image (grey, histogram
@@ -223,15 +223,15 @@ def write_camera_camera(cal: CameraCameraCalibration, out_dir: Path) -> Path:
 
 
 def run_cli(args: argparse.Namespace, config: Config) -> int:
-    """``fleetcal calibrate --camera-camera``: the first ``--camera`` is the base, the second moves."""
+    """``fleetcal calibrate-cameras``: the first ``--camera`` is the base, the second moves."""
     from fleetcal.workflows.cli import emit_json
     from fleetcal.workflows.common import open_logs, prepare_out_dir, table, write_config
 
     cameras = list(args.camera or [])
     if len(cameras) != 2:
-        raise UsageError(f"--camera-camera needs exactly two --camera topics, got {len(cameras)}")
+        raise UsageError(f"calibrate-cameras needs exactly two --camera topics, got {len(cameras)}")
     if cameras[0] == cameras[1]:
-        raise UsageError(f"--camera-camera needs two different cameras, got {cameras[0]} twice")
+        raise UsageError(f"calibrate-cameras needs two different cameras, got {cameras[0]} twice")
     out_dir = prepare_out_dir(args.out)
     with open_logs(args.logs, config, quiet=args.quiet) as reader:
         cal = calibrate_cameras(reader, cameras[0], cameras[1], config)

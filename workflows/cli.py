@@ -18,7 +18,17 @@ from typing import Any
 
 from fleetcal.pipeline.errors import FleetcalError, UsageError
 
-COMMANDS = ("demo", "simulate", "inspect", "calibrate", "map", "process", "batch")
+COMMANDS = {
+    "demo": "simulate a sample log, process it, print accuracy vs truth",
+    "simulate": "write a synthetic log with exact ground truth + OUT.truth.json",
+    "inspect": "topics, types, counts, rates, time span, frame ids, lidar/camera topics and tf tree",
+    "calibrate": "lidar-camera extrinsics without targets (GOM)",
+    "calibrate-cameras": "affine map between two cameras' images (GOM)",
+    "map": "MC-GICP odometry and voxel map",
+    "process": "calibrate + colourise + map + write back one log",
+    "batch": "process many logs; a manifest records each one",
+}
+"""Command name -> its one-line help (a command's module is imported only when it is the one run)."""
 
 EPILOG = """examples:
   fleetcal demo --out /tmp/fleetcal-demo
@@ -50,7 +60,9 @@ def common_options() -> argparse.ArgumentParser:
     return common
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The whole command line; with ``only`` (a command's name, or "" for none) just that command's options
+    are built and the others are listed by name and help (``fleetcal map --help`` imports no other command)."""
     parser = _Parser(
         prog="fleetcal",
         description="Targetless lidar-camera calibration (GOM) and MC-GICP mapping for robot fleet logs.",
@@ -59,14 +71,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     common = common_options()
-    for name in COMMANDS:
-        try:
-            module = importlib.import_module(f"fleetcal.workflows.cmd_{name}")
-        except ModuleNotFoundError as err:
-            if err.name != f"fleetcal.workflows.cmd_{name}":
-                raise
+    for name, help_text in COMMANDS.items():
+        if only is not None and name != only:
+            sub.add_parser(name, help=help_text)
             continue
-        module.register(sub, common)
+        importlib.import_module(f"fleetcal.workflows.cmd_{name.replace('-', '_')}").register(sub, common)
     return parser
 
 
@@ -87,8 +96,9 @@ def _json_default(obj: Any) -> Any:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    words = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(words[0] if words and words[0] in COMMANDS else "")
+    args = parser.parse_args(words)
     if not getattr(args, "func", None):
         parser.print_help(sys.stderr)
         return 2

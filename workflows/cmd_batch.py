@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from fleetcal.pipeline.errors import ProcessingError, UsageError
-from fleetcal.workflows.cli import emit_json
+from fleetcal.workflows.cli import COMMANDS, emit_json
 
 EXAMPLES = """examples:
   fleetcal batch "fleet/*.mcap" --out results/                 # quote the glob
@@ -32,7 +32,7 @@ EXAMPLES = """examples:
 
 def register(sub: Any, common: argparse.ArgumentParser) -> None:
     p = sub.add_parser(
-        "batch", parents=[common], help="process many logs; a manifest records each one",
+        "batch", parents=[common], help=COMMANDS["batch"],
         description=__doc__, epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
     )  # fmt: skip
     p.add_argument(

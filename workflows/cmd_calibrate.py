@@ -6,7 +6,7 @@ import argparse
 import sys
 from typing import Any
 
-from fleetcal.workflows.cli import emit_json
+from fleetcal.workflows.cli import COMMANDS, emit_json
 
 EXAMPLES = """examples:
   fleetcal calibrate drive.mcap --out calib/                     # topics detected, initial guess from tf
@@ -18,7 +18,7 @@ EXAMPLES = """examples:
 
 def register(sub: Any, common: argparse.ArgumentParser) -> None:
     p = sub.add_parser(
-        "calibrate", parents=[common], help="lidar-camera extrinsics without targets (GOM)",
+        "calibrate", parents=[common], help=COMMANDS["calibrate"],
         description=__doc__, epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
     )  # fmt: skip
     p.add_argument("logs", nargs="+", metavar="LOG", help="log file(s) of one recording")
@@ -33,47 +33,6 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--search-m", type=float, metavar="M", help="translation search half-width, metres")
     p.add_argument("--initial", metavar='"x y z roll pitch yaw"', help="T_camera_lidar guess (m, deg)")
     p.add_argument("--joint", action="store_true", help="all cameras at once (camera-camera tf from the log)")
-    p.add_argument(
-        "--camera-camera",
-        action="store_true",
-        help="affine map between two --camera images (GOM 3.2.2) -> camera_camera.parquet",
-    )
-    p.add_argument("--gradient-viewpoint", choices=["auto", "camera", "lidar"],
-                   help="lidar gradients on the camera's sphere at the initial guess (paper) or on the lidar's own, "
-                        "carried to the camera; auto (default): the lidar's")
-    p.add_argument("--gradient-fit", choices=["auto", "paper", "lsq"],
-                   help="lidar gradient: Algorithm 1 or least squares; auto (default): lsq with the lidar viewpoint")
-    p.add_argument("--gradient-neighbours", choices=["auto", "angle", "sampling"],
-                   help="sphere neighbours: nearest by angle (paper) or across rings too; auto (default): "
-                        "across rings with the lidar viewpoint, unless sparse rings cross the image slanted > 30 deg")
-    p.add_argument("--explore", choices=["auto", "on", "off"],
-                   help="GOM swarm explores on image gradients blurred 3x more for its first 30 iterations; "
-                        "auto (default): on for --search-deg above 5 or --search-m above 0.5")
-    p.add_argument("--ring-smoothing", choices=["auto", "on", "off"],
-                   help="GOM also scores image gradients smoothed across the lidar's rings (a third of their "
-                        "spacing); auto (default): on where that exceeds the image blur (sparse rings)")
-    p.add_argument("--translation", choices=["auto", "estimate", "hold"],
-                   help="estimate the translation, or hold it at the initial guess's (rotation only); auto "
-                        "(default): held where the seeded runs disagree on it from a trusted start (box within "
-                        "5 deg / 0.5 m)")
-    p.add_argument("--no-motion-compensation", action="store_true", help="ignore /tf odometry")
-    p.add_argument("--no-point-times", action="store_true",
-                   help="move each scan by its stamp, not each point by its time field (de-skewed clouds)")
-    p.add_argument("--camera-model", choices=["log", "plumb_bob", "rational_polynomial", "equidistant",
-                                              "cylindrical", "none"],
-                   help="image projection: the CameraInfo's (log, default) or this model with its K and D "
-                        "(cylindrical: the GOM paper's panoramic model)")
-    p.add_argument("--rectified-topic", action="append", metavar="TOPIC",
-                   help="image topic that carries rectified images though its name does not say so (ROS: "
-                        "image_rect...); projected with the CameraInfo's P and R; repeat for several")
-    p.add_argument("--estimate-focal", action="store_true", help="also estimate a focal length scale")
-    p.add_argument("--particles", type=int, metavar="N", help="particle swarm size (default 200)")
-    p.add_argument("--seed", type=int, help="random seed")
-    p.add_argument("--repeats", type=int, metavar="N",
-                   help="seeded runs; their spread is the uncertainty (one run in a box wider than 5 deg / 0.5 m is "
-                   "suspect: nothing confirms it)")
-    p.add_argument("--confirm-repeats", type=int, metavar="N",
-                   help="extra seeded runs while none confirms the best (default 3; 0: none)")
     p.add_argument("--allow-truncated", action="store_true", help="use what is intact of a truncated log")
     p.add_argument("--no-report", action="store_true", help="skip the report PNGs")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
@@ -87,22 +46,7 @@ def overrides(args: argparse.Namespace) -> dict[str, Any]:
         "calibration.frames": args.frames,
         "calibration.search_deg": args.search_deg,
         "calibration.search_m": args.search_m,
-        "calibration.translation": args.translation,
-        "calibration.particles": args.particles,
-        "calibration.seed": args.seed,
-        "calibration.repeats": args.repeats,
-        "calibration.confirm_repeats": args.confirm_repeats,
-        "calibration.gradient_viewpoint": args.gradient_viewpoint,
-        "calibration.explore": args.explore,
-        "calibration.ring_smoothing": args.ring_smoothing,
-        "calibration.camera_model": args.camera_model,
-        "calibration.gradient_fit": args.gradient_fit,
-        "calibration.gradient_neighbours": args.gradient_neighbours,
-        "calibration.estimate_focal": True if args.estimate_focal else None,
-        "calibration.motion_compensation": False if args.no_motion_compensation else None,
-        "calibration.point_times": False if args.no_point_times else None,
         "io.allow_truncated": True if args.allow_truncated else None,
-        "io.rectified_topics": args.rectified_topic,
     }
 
 
@@ -120,10 +64,6 @@ def run(args: argparse.Namespace) -> int:
     from fleetcal.workflows.sensors import resolve_cameras, resolve_lidar
 
     config = config_from_args(args, overrides(args))
-    if args.camera_camera:
-        from fleetcal.workflows.calibrate_cameras import run_cli
-
-        return run_cli(args, config)
     out_dir = prepare_out_dir(args.out, CALIBRATE_OUTPUTS)
     with open_logs(args.logs, config, quiet=args.quiet) as reader:
         lidar = resolve_lidar(reader, args.lidar)

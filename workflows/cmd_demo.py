@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from fleetcal.pipeline.transforms import invert, rotation_error_deg, translation_error_m
 from fleetcal.readers.frames import load_tf_tree
 from fleetcal.readers.open import open_log
-from fleetcal.workflows.cli import emit_json
+from fleetcal.workflows.cli import COMMANDS, emit_json
 from fleetcal.workflows.cmd_simulate import add_simulation_arguments, options_from_args
 from fleetcal.workflows.inspect_log import inspect_log
 from fleetcal.workflows.simulator.truth import load_truth
@@ -207,7 +207,7 @@ def register(subparsers: Any, common: argparse.ArgumentParser) -> None:
     parser = subparsers.add_parser(
         "demo",
         parents=[common],
-        help="simulate a sample log, process it, print accuracy vs truth",
+        help=COMMANDS["demo"],
         description=__doc__,
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,

@@ -16,7 +16,7 @@ from typing import Any
 
 from fleetcal.pipeline.errors import TruncatedLogError
 from fleetcal.readers.open import open_log
-from fleetcal.workflows.cli import emit_json
+from fleetcal.workflows.cli import COMMANDS, emit_json
 from fleetcal.workflows.inspect_log import format_report, inspect_log
 
 EXAMPLES = """examples:
@@ -32,7 +32,7 @@ def register(subparsers: Any, common: argparse.ArgumentParser) -> None:
     parser = subparsers.add_parser(
         "inspect",
         parents=[common],
-        help="topics, types, counts, rates, time span, frame ids, lidar/camera topics and tf tree",
+        help=COMMANDS["inspect"],
         description=__doc__,
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,

@@ -6,7 +6,7 @@ import argparse
 import sys
 from typing import Any
 
-from fleetcal.workflows.cli import emit_json
+from fleetcal.workflows.cli import COMMANDS, emit_json
 
 EXAMPLES = """examples:
   fleetcal map drive.mcap --out map/                         # lidar topic detected, intensity channel
@@ -20,7 +20,7 @@ registered) unless --workers or --scheduler asks for dask workers.
 
 def register(sub: Any, common: argparse.ArgumentParser) -> None:
     p = sub.add_parser(
-        "map", parents=[common], help="MC-GICP odometry and voxel map", description=__doc__,
+        "map", parents=[common], help=COMMANDS["map"], description=__doc__,
         epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
     )  # fmt: skip
     p.add_argument("logs", nargs="+", metavar="LOG", help="log file(s) of one recording")

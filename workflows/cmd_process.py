@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from fleetcal.workflows.cli import emit_json
+from fleetcal.workflows.cli import COMMANDS, emit_json
 
 EXAMPLES = """examples:
   fleetcal process drive.mcap --out out/drive
@@ -17,7 +17,7 @@ EXAMPLES = """examples:
 
 def register(sub: Any, common: argparse.ArgumentParser) -> None:
     p = sub.add_parser(
-        "process", parents=[common], help="calibrate + colourise + map + write back one log",
+        "process", parents=[common], help=COMMANDS["process"],
         description=__doc__, epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
     )  # fmt: skip
     p.add_argument("logs", nargs="+", metavar="LOG", help="log file(s) of one recording")

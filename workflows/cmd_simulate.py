@@ -14,7 +14,7 @@ import sys
 from typing import Any
 
 from fleetcal.pipeline.errors import ConfigError, UsageError
-from fleetcal.workflows.cli import emit_json
+from fleetcal.workflows.cli import COMMANDS, emit_json
 from fleetcal.workflows.simulator.lidar import DEFAULT_LAYOUT, LIDAR_PATTERNS, MAX_ROSETTE_LINES, SUPPORTED_BEAMS
 from fleetcal.workflows.simulator.scene import SCENES
 from fleetcal.workflows.simulator.truth import MAX_CAMERAS
@@ -220,7 +220,7 @@ def register(subparsers: Any, common: argparse.ArgumentParser) -> None:
     parser = subparsers.add_parser(
         "simulate",
         parents=[common],
-        help="write a synthetic log with exact ground truth + OUT.truth.json",
+        help=COMMANDS["simulate"],
         description=__doc__,
         epilog=EXAMPLES,
         formatter_class=argparse.RawDescriptionHelpFormatter,

@@ -29,9 +29,6 @@ FLAG_OF_KEY = {
     "mapping.max_corr_m": "--max-corr",
     "mapping.use_tf_odometry": "--no-tf-odometry",
     "mapping.deskew": "--no-deskew",
-    "calibration.motion_compensation": "--no-motion-compensation",
-    "calibration.point_times": "--no-point-times",
-    "io.rectified_topics": "--rectified-topic",
 }
 """Config key -> the flag that sets it, where the flag is not ``--`` + the key's name with ``-`` for ``_``."""
 
