@@ -296,8 +296,9 @@ def test_held_translation_keeps_the_camera_centre_and_recovers_the_rotation(fram
 def test_translation_the_scene_does_not_fix_is_held_when_the_runs_disagree_on_it() -> None:
     """Far wall only, start 1 deg off with the true camera centre. Estimating 6 DoF, the two seeded runs
     land at different places along the shift/turn ridge (measured 0.32 deg / 26 cm and 0.7 / 57 cm apart,
-    the best scoring 0.8784 against 0.8781 at the truth), neither confirms the other, and the verdict is
-    ``suspect``; ``auto`` then holds the translation, and the rotation-only runs agree on the truth (0.01
+    the best scoring 0.8784 against 0.8781 at the truth), the other run scores as well as the best over the
+    wall's image bands, so the translation's deviations are decimetres and the verdict is ``suspect``; ``auto``
+    then holds the translation, and the rotation-only runs agree on the truth (0.01
     deg). Confirmation is a weak test of a ridge: with 3 runs and 3 more to confirm, two of them landed
     within 0.5 deg / 15 cm of each other by chance and the 6-DoF estimate, 26 cm off, was ``recalibrated``."""
     wall = far_wall_frame()
@@ -307,6 +308,7 @@ def test_translation_the_scene_does_not_fix_is_held_when_the_runs_disagree_on_it
     free = calibrate([wall], T_init, dataclasses.replace(cfg, translation="estimate"))
     assert not free.translation_held
     assert free.verdict == "suspect" and "seeded runs" in free.verdict_reason
+    assert np.max(2 * free.std_translation_m) > 0.15 and free.alike_runs == 1
     held = calibrate([wall], T_init, cfg)
     assert held.translation_held and held.verdict == "recalibrated" and held.agreeing_repeats >= 1
     np.testing.assert_allclose(camera_centre_lidar(held.T_camera_lidar), camera_centre_lidar(T_true), atol=1e-9)
@@ -497,7 +499,8 @@ def test_sparse_rings_slanted_across_the_image_are_suspect(frame: CalibrationFra
     """A lidar rolled 45 deg about its forward axis crosses the image with its rings slanted 45 deg
     (``ring_slant_deg``); with 16 beams (rings 1.47 deg apart) that makes the verdict ``suspect`` (such rigs
     have come out 0.2-1.7 deg off) and the ``auto`` neighbour rule ``angle`` (the lidar sphere's stretch
-    assumes level rings). The same roll with 64 beams, or 16 beams level, keeps both as they were."""
+    assumes level rings). The same roll with 64 beams, or 16 beams level, gives neither (a sparse scan may still be
+    ``suspect`` for its translation's sampling cell)."""
     cheap = CalibrationConfig(search_deg=1.0, search_m=0.05, n_particles=16, max_iterations=4, repeats=1,
                               profile_translation_m=0.0)
 
@@ -524,7 +527,7 @@ def test_sparse_rings_slanted_across_the_image_are_suspect(frame: CalibrationFra
         other = scanned(beams, roll_deg)
         result = calibrate(*other, cheap)
         assert result.ring_slant_deg == pytest.approx(roll_deg, abs=1.0)
-        assert result.verdict != "suspect", (beams, roll_deg, result.verdict_reason)
+        assert "slanted" not in result.verdict_reason, (beams, roll_deg, result.verdict_reason)
         assert resolve_auto_rules(*other, cheap).neighbours_by == "auto"
 
 

@@ -44,6 +44,10 @@ from fleetcal.workflows.pairing import PairingStats, iter_pairs
 log = logging.getLogger(__name__)
 
 
+STD_COLUMNS = tuple([f"std_r{a}_deg" for a in "xyz"] + [f"std_t{a}_m" for a in "xyz"])
+"""Per-axis standard deviations in the camera's axes, as named in ``calibration.parquet`` and ``--json``."""
+
+
 @dataclass
 class PairCalibration:
     """The calibration of one lidar/camera pair (in joint mode, one row per camera of the rig)."""
@@ -61,6 +65,15 @@ class PairCalibration:
     n_points: list[int] = field(default_factory=list)
     motion_compensated: bool = False
     estimate_frame: str = ""  # the camera frame whose axes the translation profile is along ("": camera_frame)
+    initialisation: str = "tf"  # where the initial guess came from: tf or initial
+
+    def axis_deviations(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """(3,) rotation (degrees) and (3,) translation (metres) standard deviations along this camera's axes
+        (the result's, in the reference camera's axes, turned into this one's; correlations left out)."""
+        R = (self.T_camera_lidar @ np.linalg.inv(self.result.T_camera_lidar))[:3, :3]
+        turned = [np.sqrt(np.abs(R) ** 2 @ (np.asarray(std, dtype=np.float64) ** 2))
+                  for std in (self.result.std_rotation_deg, self.result.std_translation_m)]
+        return turned[0], turned[1]
 
     def summary(self) -> dict[str, Any]:
         t, q = to_quat(self.T_camera_lidar)
@@ -93,6 +106,11 @@ class PairCalibration:
             "frames_used": self.result.frames_used,
             "runtime_s": self.result.runtime_s,
             "motion_compensated": self.motion_compensated,
+            **{name: _finite_or_none(float(value)) for name, value in zip(STD_COLUMNS, np.concatenate(
+                self.axis_deviations()), strict=True)},
+            "alike_runs": self.result.alike_runs,
+            "initialisation": self.initialisation,
+            "motion_source": "tf" if self.motion_compensated else "none",
         }
 
 
@@ -256,14 +274,17 @@ def run_calibration(
         for topic in camera_topics:
             collected[topic] = collect_frames(reader, lidar_topic, topic, config, tree, progress)
     if joint and len(camera_topics) > 1:
-        return _calibrate_joint(lidar_topic, camera_topics, collected, tree, initial, solver)
-    results: list[PairCalibration] = []
-    for topic in camera_topics:
-        col = collected[topic]
-        T_init = initial_guess(tree, col.lidar_frame, col.camera_frame, initial)
-        _check_visible(col.frames, T_init, topic)
-        result = calibrate(col.frames, T_init, solver)
-        results.append(_pair(lidar_topic, topic, col, result, result.T_camera_lidar, T_init))
+        results = _calibrate_joint(lidar_topic, camera_topics, collected, tree, initial, solver)
+    else:
+        results = []
+        for topic in camera_topics:
+            col = collected[topic]
+            T_init = initial_guess(tree, col.lidar_frame, col.camera_frame, initial)
+            _check_visible(col.frames, T_init, topic)
+            result = calibrate(col.frames, T_init, solver)
+            results.append(_pair(lidar_topic, topic, col, result, result.T_camera_lidar, T_init))
+    for pair in results:
+        pair.initialisation = "initial" if initial else "tf"
     return results
 
 
@@ -330,7 +351,10 @@ def calibration_rows(pairs: list[PairCalibration], feature: str) -> list[dict[st
             "tx_m": t[0], "ty_m": t[1], "tz_m": t[2], "qx": q[0], "qy": q[1], "qz": q[2], "qw": q[3],
             "roll_deg": roll, "pitch_deg": pitch, "yaw_deg": yaw, "score": p.result.score,
             "initial_score": p.result.initial_score, "frames_used": p.result.frames_used,
-            "runtime_s": p.result.runtime_s,
+            "runtime_s": p.result.runtime_s, "verdict": p.result.verdict, "verdict_reason": p.result.verdict_reason,
+            **dict(zip(STD_COLUMNS, np.concatenate(p.axis_deviations()).tolist(), strict=True)),
+            "initialisation": p.initialisation, "time_offset_s": float("nan"), "time_offset_std_s": float("nan"),
+            "readout_s": float("nan"), "motion_source": "tf" if p.motion_compensated else "none",
         })  # fmt: skip
     return rows
 

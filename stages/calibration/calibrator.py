@@ -40,6 +40,7 @@ from fleetcal.stages.calibration.frame import CalibrationFrame, Mat4, fold_recti
 from fleetcal.stages.calibration.observability import AXES, translation_profile, weak_axes
 from fleetcal.stages.calibration.problem import CalibrationProblem, ring_slant_deg
 from fleetcal.stages.calibration.sphere_gradients import cross_ring_neighbours, ring_spacing_rad, sphere_coordinates
+from fleetcal.stages.calibration.uncertainty import axis_deviations, sampling_floor
 
 Verdict = Literal["ok", "recalibrated", "suspect"]
 
@@ -62,7 +63,9 @@ class CalibrationResult:
             ``gom_suspect_below``, a flat optimum, an estimate at the edge of the search box or on a
             frame's overlap limit, no other seeded run agreeing with the returned one, or a held translation
             whose rotation lies away from the unconfirmed 6-DoF best's, ``CalibrationConfig.translation``; or
-            a single run in a ``CalibrationConfig.wide_box``, which nothing confirms).
+            a single run in a ``CalibrationConfig.wide_box``, which nothing confirms; or twice a per-axis standard
+            deviation, ``std_rotation_deg`` / ``std_translation_m``, beyond ``agree_rotation_deg`` /
+            ``agree_translation_m``).
         verdict_reason: why ``suspect`` (empty otherwise).
         flat: True when the optimum is not distinct from its neighbourhood.
         rotation_std_deg, translation_std_m: RMS deviation of the repeats from the returned estimate
@@ -90,6 +93,11 @@ class CalibrationResult:
             initial guess, degrees (``problem.ring_slant_deg``: 0 level, 90 upright; NaN where the rings circle
             the image). Sparse rings slanted more than ``CalibrationConfig.slanted_rings_above_deg`` make the
             verdict ``suspect``.
+        std_rotation_deg, std_translation_m: (3,) standard deviations about / along the (reference) camera's
+            x, y, z, degrees / metres (``uncertainty.axis_deviations``: seeded runs that score as well as the
+            best, and the scan's sampling cell); translation NaN where held. The verdict is ``suspect`` where
+            twice a deviation exceeds ``agree_rotation_deg`` / ``agree_translation_m``.
+        alike_runs: other seeded runs that score as well as the best.
     """
 
     T_camera_lidar: Mat4
@@ -119,6 +127,9 @@ class CalibrationResult:
     ring_spacing_deg: float = float("nan")
     sparse_rings: bool = False
     ring_slant_deg: float = float("nan")
+    std_rotation_deg: NDArray[np.float64] = dataclasses.field(default_factory=lambda: np.full(3, np.nan))
+    std_translation_m: NDArray[np.float64] = dataclasses.field(default_factory=lambda: np.full(3, np.nan))
+    alike_runs: int = 0
 
 
 PARAMETER_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz", "focal_scale")
@@ -288,6 +299,10 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
              or translation_error_m(T_best, problem.T_init) > cfg.ok_translation_m)
     ring_deg, slant_deg = (_finite_median(problem.ring_spacing_rad, np.degrees),
                            _finite_median(problem.ring_slant_deg))
+    deviations = axis_deviations(problem, x_best, [run.x for i, run in enumerate(runs) if i != best_index],
+                                 sampling_floor(ring_deg, problem.pixel_deg(), *problem.typical_range_and_off_axis()),
+                                 problem.free_parameters(hold))
+    uncertain = _uncertain_axes(deviations.rotation_deg, deviations.translation_m, cfg)
     reason = ""
     edge = box_edge(x_best, problem.lower, problem.upper, cfg.box_edge_fraction, problem.free_parameters(hold))
     on_limit = problem.overlap_limited(x_best, cfg.box_edge_fraction) if cfg.min_overlap_fraction > 0 else []
@@ -319,6 +334,11 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     elif turned_deg > cfg.agree_rotation_deg:
         reason = (f"the seeded runs disagree; with the translation held they agree on a rotation {turned_deg:.2f} deg "
                   "from the best 6-DoF run's, so it is not only the translation they disagree on")
+    elif uncertain:
+        reason = (f"the estimate is uncertain beyond {cfg.agree_rotation_deg:g} deg / "
+                  f"{100 * cfg.agree_translation_m:g} cm (2 sigma: {', '.join(uncertain)}; "
+                  f"{deviations.alike_runs} other seeded run(s) score as well): "
+                  "use more frames (--frames) or a log with more structure near the camera")
     verdict: Verdict
     if reason:
         verdict = "suspect"
@@ -336,7 +356,20 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         gradient_viewpoint=cfg.viewpoint, ring_smoothing_px=max(problem.ring_smoothing_px),
         translation_held=hold, translation_profile=profile,
         weak_translation_axes=weak, ring_spacing_deg=ring_deg,
-        sparse_rings=bool(ring_deg > cfg.sparse_rings_above_deg), ring_slant_deg=slant_deg)
+        sparse_rings=bool(ring_deg > cfg.sparse_rings_above_deg), ring_slant_deg=slant_deg,
+        std_rotation_deg=deviations.rotation_deg, std_translation_m=deviations.translation_m,
+        alike_runs=deviations.alike_runs)
+
+
+def _uncertain_axes(std_rotation_deg: NDArray[np.float64], std_translation_m: NDArray[np.float64],
+                    cfg: CalibrationConfig) -> list[str]:
+    """The camera axes whose two standard deviations exceed ``agree_rotation_deg`` / ``agree_translation_m``
+    (the distance within which two estimates are the same answer), each as ``"rz 0.62 deg"``."""
+    out = [f"r{a} {2 * v:.2f} deg" for a, v in zip(AXES, std_rotation_deg, strict=True)
+           if 2 * v > cfg.agree_rotation_deg]
+    out += [f"t{a} {200 * v:.0f} cm" for a, v in zip(AXES, std_translation_m, strict=True)
+            if np.isfinite(v) and 2 * v > cfg.agree_translation_m]
+    return out
 
 
 def _finite_median(values: list[float], convert: Callable[[float], float] = float) -> float:

@@ -236,6 +236,15 @@ class GomScorer:
             twin.magnitude = np.ascontiguousarray(self.magnitude[::stride])
         return twin
 
+    def subset(self, index: NDArray[np.int64]) -> GomScorer:
+        """This scorer on the points ``index`` only (same image gradients)."""
+        part = copy.copy(self)
+        part.points = np.ascontiguousarray(self.points[index])
+        part.c2 = np.ascontiguousarray(self.c2[index])
+        part.s2 = np.ascontiguousarray(self.s2[index])
+        part.magnitude = np.ascontiguousarray(self.magnitude[index])
+        return part
+
     def score(self, T_camera_lidar_batch: NDArray[np.floating],
               focal_scale: NDArray[np.floating] | None = None) -> MetricBatch:
         poses = pose_batch(T_camera_lidar_batch)

@@ -286,6 +286,30 @@ class CalibrationProblem:
                            T_cam_lidar[:3, :3] if cfg.turn_gradients_with_roll else None)
         return scorer, int(sel.sum()), grads.neighbours
 
+    def T_camera_lidar_batch(self, x: NDArray[np.floating]) -> NDArray[np.float64]:
+        """(P, 4, 4) extrinsics (reference camera <- lidar) of parameters x (P, D)."""
+        return np.asarray(delta_transforms(x) @ self.T_init)
+
+    def pixel_deg(self) -> float:
+        """Median over the frames of one pixel's angle at the principal point, degrees."""
+        return float(np.median([np.degrees(1.0 / f.camera.fx) for f in self.frames]))
+
+    def typical_range_and_off_axis(self) -> tuple[float, float]:
+        """Median range (metres) and median off-axis tangent (sqrt(x^2 + y^2) / z in each camera's frame) of
+        the scored points at the initial guess; NaN where no scorer keeps points."""
+        ranges, tangents = [], []
+        for scorers, T_c_c0 in zip(self.scorers, self.T_camera_camera0, strict=True):
+            points = getattr(scorers[0], "points", None) if scorers else None
+            if points is None or len(points) == 0:
+                continue
+            cam = apply(T_c_c0 @ self.T_init, np.asarray(points, dtype=np.float64))
+            ahead = cam[cam[:, 2] > 0]
+            ranges.append(np.linalg.norm(cam, axis=1))
+            tangents.append(np.hypot(ahead[:, 0], ahead[:, 1]) / ahead[:, 2])
+        if not ranges:
+            return float("nan"), float("nan")
+        return float(np.median(np.concatenate(ranges))), float(np.median(np.concatenate(tangents)))
+
     def T_camera_lidar(self, x: NDArray[np.floating]) -> Mat4:
         """The extrinsic of parameters x (D,)."""
         return np.asarray(delta_transforms(np.asarray(x)[None])[0] @ self.T_init)

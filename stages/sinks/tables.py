@@ -44,8 +44,20 @@ CALIBRATION_SCHEMA = pa.schema(
         ("initial_score", pa.float64()),
         ("frames_used", pa.int64()),
         ("runtime_s", pa.float64()),
+        ("verdict", pa.string()),
+        ("verdict_reason", pa.string()),
+        *[(f"std_r{axis}_deg", pa.float64()) for axis in "xyz"],
+        *[(f"std_t{axis}_m", pa.float64()) for axis in "xyz"],
+        ("initialisation", pa.string()),
+        ("time_offset_s", pa.float64()),
+        ("time_offset_std_s", pa.float64()),
+        ("readout_s", pa.float64()),
+        ("motion_source", pa.string()),
     ]
 )
+"""One row per lidar/camera pair: the extrinsic, its scores and verdict, per-axis standard deviations in the
+camera's axes (rotation degrees, translation metres), where the initial guess came from (``tf``,
+``initial``), and the clock terms (NaN where not estimated) and the ego-motion source (``tf``, ``none``)."""
 
 FRAMES_SCHEMA = pa.schema(
     [
