@@ -9,6 +9,7 @@ gradients of both sensors come from the same edges.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from dataclasses import dataclass
 
 import cv2
@@ -579,3 +580,21 @@ def test_frame_holds_nine_bytes_a_pixel_and_the_objective_shares_its_gradients()
     problem = CalibrationProblem([frame], true_T_camera_lidar(), CalibrationConfig(ring_smoothing="off"))
     planes = [s.image.planes for s in problem.scorers[0] if isinstance(s, GomScorer)]
     assert planes and all(np.shares_memory(p, frame.gradients.gxy) for p in planes)
+
+
+def test_search_reports_progress_with_an_eta_that_ends_with_the_search() -> None:
+    """``calibrate(..., progress=...)`` hears of every swarm iteration of every seeded run, the fraction done
+    never falls back and stays below 1, and the last ETA is a small part of the time already spent."""
+    from fleetcal.stages.calibration.calibrator import SearchProgress
+
+    wall = far_wall_frame()
+    T_init = perturb(true_T_camera_lidar(), 1.0, 0.0, seed=2)
+    reports: list[SearchProgress] = []
+    cfg = CalibrationConfig(search_deg=2.0, search_m=0.0, n_particles=30, max_iterations=25, repeats=2,
+                            confirm_repeats=0)
+    calibrate([wall], T_init, cfg, reports.append)
+    assert {r.run for r in reports} == {1, 2} and all(r.runs == 2 for r in reports)
+    fractions = [r.fraction for r in reports]
+    assert all(b >= a for a, b in itertools.pairwise(fractions)) and 0 < fractions[-1] < 1
+    assert reports[-1].eta_s < 0.25 * reports[-1].elapsed_s
+    assert all(np.isfinite(r.best_score) for r in reports)

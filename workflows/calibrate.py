@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -33,7 +35,7 @@ from fleetcal.pipeline.transforms import (
 )
 from fleetcal.readers.base import LogReader
 from fleetcal.readers.frames import load_tf_tree
-from fleetcal.stages.calibration.calibrator import CalibrationResult, calibrate
+from fleetcal.stages.calibration.calibrator import CalibrationResult, ProgressCallback, SearchProgress, calibrate
 from fleetcal.stages.calibration.config import CalibrationConfig as SolverConfig
 from fleetcal.stages.calibration.frame import CalibrationFrame, build_frame
 from fleetcal.stages.sinks import report
@@ -274,14 +276,15 @@ def run_calibration(
         for topic in camera_topics:
             collected[topic] = collect_frames(reader, lidar_topic, topic, config, tree, progress)
     if joint and len(camera_topics) > 1:
-        results = _calibrate_joint(lidar_topic, camera_topics, collected, tree, initial, solver)
+        results = _calibrate_joint(lidar_topic, camera_topics, collected, tree, initial, solver, quiet)
     else:
         results = []
         for topic in camera_topics:
             col = collected[topic]
             T_init = initial_guess(tree, col.lidar_frame, col.camera_frame, initial)
             _check_visible(col.frames, T_init, topic)
-            result = calibrate(col.frames, T_init, solver)
+            with search_progress(quiet) as progress:
+                result = calibrate(col.frames, T_init, solver, progress)
             results.append(_pair(lidar_topic, topic, col, result, result.T_camera_lidar, T_init))
     for pair in results:
         pair.initialisation = "initial" if initial else "tf"
@@ -305,6 +308,7 @@ def _calibrate_joint(
     tree: TransformTree | None,
     initial: str | None,
     solver: SolverConfig,
+    quiet: bool = False,
 ) -> list[PairCalibration]:
     """One unknown lidar pose for the whole rig: ``T_camera_k_lidar = T_camera_k_camera0 @ T_camera0_lidar``,
     the camera-to-camera transforms from the log's tf; camera0 is the first camera topic."""
@@ -320,12 +324,27 @@ def _calibrate_joint(
         for f in col.frames:
             f.T_camera_camera0 = T_cam_ref[topic]
             frames.append(f)
-    result = calibrate(frames, T_init, solver)
+    with search_progress(quiet) as progress:
+        result = calibrate(frames, T_init, solver, progress)
     return [
         _pair(lidar_topic, topic, collected[topic], result, T_cam_ref[topic] @ result.T_camera_lidar,
               T_cam_ref[topic] @ T_init, ref.camera_frame)  # fmt: skip
         for topic in camera_topics
     ]
+
+
+@contextmanager
+def search_progress(quiet: bool) -> Iterator[ProgressCallback]:
+    """A ``calibrate`` progress callback that draws the search on stderr (``pipeline.progress.Progress``:
+    percent done, run, iteration and best score so far, ETA; one line a second at most off a terminal)."""
+    desc = "calibration search"
+    with Progress(total=100, desc=desc, quiet=quiet, unit="%", line_interval_s=1.0) as bar:
+
+        def report(p: SearchProgress) -> None:
+            bar.desc = f"{desc} run {p.run}/{p.runs} iteration {p.iteration} best {p.best_score:.4f}"
+            bar.update(int(100 * p.fraction) - bar.done)
+
+        yield report
 
 
 def _check_visible(frames: list[CalibrationFrame], T_camera_lidar: Mat4, topic: str) -> None:

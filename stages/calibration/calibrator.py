@@ -159,6 +159,58 @@ def _flat(problem: CalibrationProblem, x_best: NDArray[np.float64], best: float,
     return drop < cfg.flat_fraction * max(abs(best - chance), 1e-12)
 
 
+@dataclass(frozen=True)
+class SearchProgress:
+    """Where a running search stands, as reported to a ``calibrate(..., progress=...)`` callback.
+
+    Attributes:
+        run: the seeded run in flight (1-based).
+        runs: the runs planned so far (confirmation and held-translation runs add to it).
+        iteration: the swarm iteration just finished in that run.
+        best_score: the best score of the run in flight so far.
+        elapsed_s: seconds since the search began.
+        fraction: estimated fraction of the search done, in [0, 1).
+        eta_s: estimated seconds left (NaN before the first iteration).
+    """
+
+    run: int
+    runs: int
+    iteration: int
+    best_score: float
+    elapsed_s: float
+    fraction: float
+    eta_s: float
+
+
+ProgressCallback = Callable[[SearchProgress], None]
+
+
+class _SearchClock:
+    """Turns swarm iterations into ``SearchProgress`` reports: a run is expected to take as many iterations as
+    the finished runs took on average (half of ``max_iterations`` before the first has finished)."""
+
+    def __init__(self, callback: ProgressCallback | None, runs: int, max_iterations: int) -> None:
+        self.callback = callback
+        self.runs = runs
+        self.finished: list[int] = []
+        self.max_iterations = max_iterations
+        self.start = time.perf_counter()
+
+    def iteration(self, iteration: int, best_score: float) -> None:
+        if self.callback is None:
+            return
+        expected = float(np.mean(self.finished)) if self.finished else 0.5 * self.max_iterations
+        done = len(self.finished) + min(iteration / max(expected, 1.0), 0.95)
+        runs = max(self.runs, len(self.finished) + 1)
+        fraction = min(done / runs, 0.99)
+        elapsed = time.perf_counter() - self.start
+        eta = elapsed * (1.0 - fraction) / fraction if fraction > 0 else float("nan")
+        self.callback(SearchProgress(len(self.finished) + 1, runs, iteration, best_score, elapsed, fraction, eta))
+
+    def run_done(self, iterations: int) -> None:
+        self.finished.append(iterations)
+
+
 @dataclass
 class _Run:
     """One seeded swarm + polish run: its best score, parameters, extrinsic and iterations."""
@@ -169,8 +221,10 @@ class _Run:
     iterations: int
 
 
-def _best_of(problem: CalibrationProblem, seed: int, hold_translation: bool) -> _Run:
+def _best_of(problem: CalibrationProblem, seed: int, hold_translation: bool, clock: _SearchClock) -> _Run:
+    problem.on_iteration = clock.iteration
     swarm, polish = problem.optimise(seed, hold_translation)
+    clock.run_done(swarm.iterations)
     best = polish if polish is not None else swarm
     return _Run(best.best_score, best.best_x, problem.T_camera_lidar(best.best_x),
                 swarm.iterations + (polish.iterations if polish is not None else 0))
@@ -190,14 +244,15 @@ def _agreeing(runs: list[_Run], best: int, cfg: CalibrationConfig) -> int:
                             cfg.agree_translation_m)
 
 
-def _seeded_runs(problem: CalibrationProblem, cfg: CalibrationConfig, hold_translation: bool) -> tuple[
-        list[_Run], int]:
+def _seeded_runs(problem: CalibrationProblem, cfg: CalibrationConfig, hold_translation: bool,
+                 clock: _SearchClock) -> tuple[list[_Run], int]:
     """``repeats`` seeded runs and the index of the best, plus up to ``confirm_repeats`` more while no run
     confirms it (they only confirm: the best stays the best of the first ``repeats``)."""
-    runs = [_best_of(problem, cfg.seed + r, hold_translation) for r in range(cfg.repeats)]
+    runs = [_best_of(problem, cfg.seed + r, hold_translation, clock) for r in range(cfg.repeats)]
     best = int(np.argmax([run.score for run in runs]))
     while cfg.repeats > 1 and len(runs) < cfg.repeats + cfg.confirm_repeats and _agreeing(runs, best, cfg) == 0:
-        runs.append(_best_of(problem, cfg.seed + len(runs), hold_translation))
+        clock.runs += 1
+        runs.append(_best_of(problem, cfg.seed + len(runs), hold_translation, clock))
     return runs, best
 
 
@@ -246,10 +301,10 @@ def slanted_sparse_rings(ring_deg: float, slant_deg: float, config: CalibrationC
 
 
 def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
-              config: CalibrationConfig | None = None) -> CalibrationResult:
+              config: CalibrationConfig | None = None, progress: ProgressCallback | None = None) -> CalibrationResult:
     """Estimate ``T_camera_lidar`` from paired frames, starting at ``T_camera_lidar_init``: ``repeats``
     seeded swarm + polish runs over one objective; the best-scoring run is returned and the spread of
-    the runs is the uncertainty.
+    the runs is the uncertainty. ``progress`` is called after every swarm iteration (``SearchProgress``).
 
     Raises:
         ProcessingError: no frames, or the camera sees (almost) no lidar points anywhere in the box.
@@ -264,10 +319,12 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     init_scores, _ = problem.frame_scores(centre[None])
     hold = cfg.holds_translation
     turned_deg = 0.0  # rotation between a held estimate and the unconfirmed 6-DoF best it replaced
-    runs, best_index = _seeded_runs(problem, cfg, hold)
+    clock = _SearchClock(progress, cfg.repeats, cfg.max_iterations)
+    runs, best_index = _seeded_runs(problem, cfg, hold, clock)
     if (cfg.translation == "auto" and not hold and not cfg.wide_box and cfg.repeats > 1
             and _agreeing(runs, best_index, cfg) == 0):  # the translation may be what the runs disagree on
-        held_runs, held_best = _seeded_runs(problem, cfg, hold_translation=True)
+        clock.runs += cfg.repeats
+        held_runs, held_best = _seeded_runs(problem, cfg, True, clock)
         if _agreeing(held_runs, held_best, cfg) > 0:  # fewer unknowns, confirmed: preferred to an unconfirmed 6 DoF
             turned_deg = rotation_error_deg(held_runs[held_best].T_camera_lidar, runs[best_index].T_camera_lidar)
             runs, best_index, hold = held_runs, held_best, True

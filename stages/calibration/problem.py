@@ -176,6 +176,7 @@ class CalibrationProblem:
                                                  * default_blur_sigma_px(f.camera.width)), config.explore_stride)
                 for f, scorers in zip(frames, channels, strict=True)]
         self.evaluations = 0
+        self.on_iteration: Callable[[int, float], None] | None = None  # called after each swarm iteration
         centre = np.zeros((1, self.dim)) + 0.5 * (self.lower + self.upper)
         init_counts = self._channel_counts(centre)
         self.min_counts = [np.maximum(config.min_points, np.floor(config.min_overlap_fraction * c)).astype(np.int64)
@@ -404,7 +405,7 @@ class CalibrationProblem:
                                min_iterations=cfg.min_iterations, score_tolerance=cfg.swarm_tolerance,
                                seed=seed, x_initial=centre[free],
                                explore_objective=on_free(self.evaluate_explore) if self.explore_scorers else None,
-                               explore_iterations=cfg.explore_phase_iterations)
+                               explore_iterations=cfg.explore_phase_iterations, on_iteration=self.on_iteration)
         if not cfg.polish:
             return in_full(swarm), None
         polish = pattern_search(on_free(self.evaluate), swarm.best_x, 0.1 * (upper - lower), lower, upper,

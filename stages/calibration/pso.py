@@ -49,7 +49,8 @@ def particle_swarm(objective: BatchObjective, lower: NDArray[np.floating], upper
                    seed: int = 0,
                    inertia: float = 0.7298, cognitive: float = 1.49618, social: float = 1.49618,
                    x_initial: NDArray[np.floating] | None = None,
-                   explore_objective: BatchObjective | None = None, explore_iterations: int = 0) -> SwarmResult:
+                   explore_objective: BatchObjective | None = None, explore_iterations: int = 0,
+                   on_iteration: Callable[[int, float], None] | None = None) -> SwarmResult:
     """Maximise ``objective`` in the box [lower, upper] with a global-best particle swarm.
 
     Particles start uniformly in the box (plus ``x_initial`` as particle 0 when given), velocities
@@ -61,6 +62,7 @@ def particle_swarm(objective: BatchObjective, lower: NDArray[np.floating], upper
     With ``explore_objective`` the swarm first flies ``explore_iterations`` iterations on it (e.g. a
     smoother version of ``objective`` with wider basins), then every particle's best position is
     re-scored with ``objective`` and the swarm flies on; the stopping rule starts counting then.
+    ``on_iteration(iteration, best score)`` is called after every iteration (progress reports).
     Deterministic for a given ``seed``.
     """
     lo = np.asarray(lower, dtype=np.float64)
@@ -117,6 +119,8 @@ def particle_swarm(objective: BatchObjective, lower: NDArray[np.floating], upper
         if f_best[g] > g_f:
             g_x, g_f = p_best[g].copy(), float(f_best[g])
         history.append(g_f)
+        if on_iteration is not None:
+            on_iteration(iterations, g_f)
         spread = float(np.max(np.std(x, axis=0) / span))
         settled = stall >= stall_iterations or spread < spread_tolerance
         if iterations >= max(min_iterations, first_counted) and settled:
