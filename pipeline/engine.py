@@ -43,6 +43,7 @@ __all__ = [
     "NumbaWarmup",
     "SkipFn",
     "plan_batches",
+    "plan_batches_at",
     "run_batch",
 ]
 
@@ -211,6 +212,13 @@ def plan_batches(
         FrameBatch(i, source, topic, int(s), int(e), int(c))
         for i, (s, e, c) in enumerate(zip(starts, ends, counts, strict=True))
     ]
+
+
+def plan_batches_at(source: FrameSource, topic: str, log_times_ns: Sequence[int]) -> list[FrameBatch]:
+    """One task per given log time (ns): only the topic's messages at those times are decoded (e.g. the
+    frames a calibration chose by their stamps, spread over a long log)."""
+    times = sorted({int(t) for t in log_times_ns})
+    return [FrameBatch(i, source, topic, t, t + 1, 1) for i, t in enumerate(times)]
 
 
 def run_batch(batch: FrameBatch, stage_fn: Callable[[Any], Any]) -> BatchResult:
@@ -402,6 +410,7 @@ class Engine:
         *,
         ordered: bool = False,
         desc: str | None = None,
+        log_times_ns: Sequence[int] | None = None,
     ) -> Generator[Any, None, None]:
         """Run ``stage_fn(frame)`` on every frame of ``topic`` in the log-time range; yield results.
 
@@ -414,6 +423,8 @@ class Engine:
             ordered: yield in log-time order (buffers at most ``max_in_flight`` batches) instead of
                 as batches complete.
             desc: progress-bar label (default: the topic).
+            log_times_ns: only the messages at these log times, one task each (``start_ns`` / ``end_ns`` and
+                ``batch_size`` are then not used).
 
         Yields:
             the stage's results; ``self.stats`` is complete once the iterator is exhausted.
@@ -423,7 +434,8 @@ class Engine:
             ProcessingError: a stage failed with an unexpected error after the retries.
         """
         t0 = time.perf_counter()
-        batches = plan_batches(source, topic, batch_size, start_ns, end_ns)
+        batches = (plan_batches(source, topic, batch_size, start_ns, end_ns) if log_times_ns is None
+                   else plan_batches_at(source, topic, log_times_ns))
         self.stats = EngineStats(frames_total=sum(b.n_messages for b in batches))
         progress = Progress(self.stats.frames_total, desc=desc or topic, quiet=self.quiet)
         running = self._run_in_process(batches, stage_fn) if self.in_process else self._run_dask(

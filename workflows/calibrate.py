@@ -13,13 +13,14 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 from numpy.typing import NDArray
 
-from fleetcal.pipeline.camera_model import with_model
+from fleetcal.pipeline.camera_model import CameraModel, with_model
 from fleetcal.pipeline.config import Config
+from fleetcal.pipeline.engine import Engine
 from fleetcal.pipeline.errors import InputError, ProcessingError, UsageError
 from fleetcal.pipeline.frames import CameraFrame, LidarFrame
 from fleetcal.pipeline.progress import Progress
@@ -34,14 +35,22 @@ from fleetcal.pipeline.transforms import (
     translation_error_m,
 )
 from fleetcal.readers.base import LogReader
-from fleetcal.readers.frames import load_tf_tree
+from fleetcal.readers.frames import CameraInfoTracker, load_tf_tree
 from fleetcal.stages.calibration.calibrator import CalibrationResult, ProgressCallback, SearchProgress, calibrate
 from fleetcal.stages.calibration.config import CalibrationConfig as SolverConfig
-from fleetcal.stages.calibration.frame import CalibrationFrame, build_frame
+from fleetcal.stages.calibration.frame import (
+    CalibrationFrame,
+    CameraFeatures,
+    LidarFeatures,
+    camera_feature_stage,
+    join_frame,
+    lidar_feature_stage,
+)
 from fleetcal.stages.sinks import report
 from fleetcal.stages.sinks.tables import CALIBRATION_SCHEMA, FRAMES_SCHEMA, write_rows
 from fleetcal.workflows.ego_motion import scan_motion, sweep_motion
-from fleetcal.workflows.pairing import PairingStats, iter_pairs
+from fleetcal.workflows.frame_sources import STAGE_WARMUPS, LogFrames
+from fleetcal.workflows.pairing import ChosenPair, PairingStats, choose_pairs
 
 log = logging.getLogger(__name__)
 
@@ -146,22 +155,6 @@ def solver_config(config: Config) -> SolverConfig:
     )
 
 
-def make_frame(
-    lidar: LidarFrame,
-    camera: CameraFrame,
-    feature_kind: str,
-    blur_sigma_px: float,
-    T_lidar_motion: Mat4 | None,
-) -> CalibrationFrame:
-    """Per-frame stage: lidar feature and image gradients of one pair (``blur_sigma_px`` 0: by width)."""
-    if camera.camera is None:
-        raise InputError(f"camera {camera.topic} has no CameraInfo in the log (or its K is unusable)")
-    if lidar.n_points == 0:
-        raise InputError(f"lidar scan at {lidar.stamp_ns} has no valid points")
-    return build_frame(lidar, camera, feature_kind, blur_sigma_px if blur_sigma_px > 0 else None,
-                       T_lidar_motion=T_lidar_motion)  # fmt: skip
-
-
 @dataclass
 class _Collected:
     frames: list[CalibrationFrame]
@@ -173,63 +166,161 @@ class _Collected:
     compensated: bool
 
 
+@dataclass(frozen=True)
+class _SparseScan:
+    """What the lidar stage returns for a chosen scan with too few valid points (kept apart from decode
+    failures, which the engine counts)."""
+
+    stamp_ns: int
+    n_points: int
+
+
+@dataclass(frozen=True)
+class _ChosenLidarStage:
+    """Engine stage: lidar feature(s) of the scans whose header stamp is in ``stamps_ns`` (others: None)."""
+
+    stamps_ns: frozenset[int]
+    feature: str
+    min_points: int
+
+    def __call__(self, lidar: LidarFrame) -> LidarFeatures | _SparseScan | None:
+        if lidar.stamp_ns not in self.stamps_ns:
+            return None
+        if lidar.n_points < self.min_points:
+            return _SparseScan(lidar.stamp_ns, lidar.n_points)
+        return lidar_feature_stage(lidar, self.feature)
+
+
+@dataclass(frozen=True)
+class _ChosenCameraStage:
+    """Engine stage: gradients and grey of the images whose header stamp is in ``stamps_ns`` (others: None),
+    projected with the calibration's camera model (``model``: the client's CameraInfo model of a topic
+    listed as rectified, else the frame's own); the image of ``first_ns`` is kept for overlays."""
+
+    stamps_ns: frozenset[int]
+    first_ns: int
+    blur_sigma_px: float
+    camera_model: str
+    model: CameraModel | None
+
+    def __call__(self, camera: CameraFrame) -> CameraFeatures | None:
+        if camera.stamp_ns not in self.stamps_ns:
+            return None
+        camera.camera = with_model(self.model if self.model is not None else camera.camera, self.camera_model)
+        if camera.camera is None:
+            raise InputError(f"camera {camera.topic} has no CameraInfo in the log (or its K is unusable)")
+        return camera_feature_stage(camera, self.blur_sigma_px if self.blur_sigma_px > 0 else None,
+                                    keep_image=camera.stamp_ns == self.first_ns)
+
+
+def calibration_workers(config: Config) -> int | None:
+    """Engine workers for the per-frame calibration stages: in-process (0) unless a scheduler or a worker
+    count is configured (a handful of frames does not pay for starting a local cluster)."""
+    if config.engine.scheduler is not None or config.engine.workers is not None:
+        return config.engine.workers
+    return 0
+
+
 def collect_frames(
     reader: LogReader,
     lidar_topic: str,
     camera_topic: str,
     config: Config,
     tree: TransformTree | None,
-    progress: Progress | None = None,
+    engine: Engine | None = None,
 ) -> _Collected:
-    """Decode N pairs spread over the log and run the per-frame stages on them."""
+    """Choose N pairs spread over the log by their header stamps, run the per-frame stages (decoding, lidar
+    feature, image gradients) on ``engine`` for those messages only (None: in process), then join each
+    pair with its ego-motion from ``tree``."""
     c = config.calibration
     stats = PairingStats()
+    chosen = choose_pairs(reader, lidar_topic, camera_topic, config.io.pairing_tolerance_ns, c.frames, stats=stats)
+    if not chosen:
+        _raise_unpaired(lidar_topic, camera_topic, stats, config)
+    info = CameraInfoTracker.for_image(reader, camera_topic, config.io.rectified_topics)
+    if info.model is None:
+        raise InputError(f"camera {camera_topic} has no CameraInfo in the log (or its K is unusable)")
+    source = LogFrames(reader.paths, config.io.allow_truncated, config.io.max_range_m)
+    own = engine is None
+    engine = Engine(workers=0, quiet=True, warmups=STAGE_WARMUPS) if engine is None else engine
+    try:
+        lidar_stage = _ChosenLidarStage(frozenset(p.lidar_stamp_ns for p in chosen), c.feature, c.min_points)
+        scans = {r.stamp_ns if isinstance(r, _SparseScan) else r.lidar.stamp_ns: r for r in engine.map_frames(
+            source, lidar_topic, lidar_stage, ordered=True, desc="calibration scans",
+            log_times_ns=[p.lidar_log_ns for p in chosen])}
+        lidar_problems, blank_scans = _problems(engine), engine.stats.skip_reasons.get("no valid points", 0)
+        camera_stage = _ChosenCameraStage(frozenset(p.camera_stamp_ns for p in chosen), chosen[0].camera_stamp_ns,
+                                          c.blur_sigma_px, c.camera_model,
+                                          info.model if camera_topic in config.io.rectified_topics else None)
+        images = {r.stamp_ns: r for r in engine.map_frames(
+            source, camera_topic, camera_stage, ordered=True, desc="calibration images",
+            log_times_ns=[p.camera_log_ns for p in chosen])}
+        problems = lidar_problems + _problems(engine)
+    finally:
+        if own:
+            engine.close()
+    for message in problems:
+        log.warning("skipping an undecodable frame on %s", message)
+    return _joined(chosen, scans, images, config, tree, lidar_topic, problems, blank_scans)
+
+
+def _problems(engine: Engine) -> list[str]:
+    """The skip messages of the engine's last run other than frames it was not asked for or that hold no
+    valid point (those are counted apart)."""
+    return [m for m in engine.stats.skip_examples if not m.endswith(("stage returned None", "no valid points"))]
+
+
+def _joined(chosen: list[ChosenPair], scans: dict[int, Any], images: dict[int, CameraFeatures], config: Config,
+            tree: TransformTree | None, lidar_topic: str, skips: list[str], blank_scans: int) -> _Collected:
+    """The chosen pairs whose scan and image came back, joined with their ego-motion from ``tree``
+    (``blank_scans``: chosen scans without a valid point, skipped by the engine)."""
+    c = config.calibration
     out = _Collected([], None, [], [], "", "", False)
-    sparse = 0
-    for lidar, camera in iter_pairs(
-        reader, lidar_topic, camera_topic, config.io.pairing_tolerance_ns, max_pairs=c.frames, stats=stats,
-        rectified_topics=config.io.rectified_topics, max_range_m=config.io.max_range_m,
-    ):
-        out.lidar_frame, out.camera_frame = lidar.frame_id.lstrip("/"), camera.frame_id.lstrip("/")
-        if lidar.n_points < c.min_points:
-            log.warning("skipping scan at %d: %d points", lidar.stamp_ns, lidar.n_points)
+    sparse = blank_scans
+    for pair in chosen:
+        scan, image = scans.get(pair.lidar_stamp_ns), images.get(pair.camera_stamp_ns)
+        if isinstance(scan, _SparseScan):
+            log.warning("skipping scan at %d: %d points", scan.stamp_ns, scan.n_points)
             sparse += 1
             continue
-        sweep = (
-            sweep_motion(tree, out.lidar_frame, lidar, camera.stamp_ns)
-            if c.motion_compensation and c.point_times else None
-        )
-        motion = (
-            scan_motion(tree, out.lidar_frame, lidar.stamp_ns, camera.stamp_ns)
-            if c.motion_compensation and sweep is None else None
-        )
+        if scan is None or image is None:
+            continue
+        out.lidar_frame, out.camera_frame = scan.lidar.frame_id.lstrip("/"), image.frame_id.lstrip("/")
+        sweep = (sweep_motion(tree, out.lidar_frame, scan.lidar, image.stamp_ns)
+                 if c.motion_compensation and c.point_times else None)
+        motion = (scan_motion(tree, out.lidar_frame, scan.lidar.stamp_ns, image.stamp_ns)
+                  if c.motion_compensation and sweep is None else None)
         out.compensated |= motion is not None or sweep is not None
-        camera.camera = with_model(camera.camera, c.camera_model)
-        frame = make_frame(lidar, camera, c.feature, c.blur_sigma_px, motion)
+        frame = join_frame(scan, image, T_lidar_motion=motion)
         if sweep is not None:
             frame = replace(frame, point_time_offsets_s=sweep[0], twist_lidar=sweep[1])
         out.frames.append(frame)
         if out.overlay_image is None:
-            out.overlay_image = camera.image  # the objective keeps gradients only: no image per frame
-        out.lidar_stamps.append(lidar.stamp_ns)
-        out.n_points.append(lidar.n_points)
-        if progress is not None:
-            progress.update()
-    if not out.frames:
-        if sparse:
-            raise InputError(
-                f"no valid points: all {sparse} paired scans on {lidar_topic} have fewer than "
-                f"{c.min_points} valid points (empty clouds, or NaN or beyond io.max_range_m "
-                f"{config.io.max_range_m:g} m)"
-            )
-        if stats.lidar_frames == 0 or stats.camera_frames == 0:
-            raise InputError(f"no messages on {lidar_topic if stats.lidar_frames == 0 else camera_topic}")
+            out.overlay_image = image.image  # the objective keeps gradients only: no image per frame
+        out.lidar_stamps.append(scan.lidar.stamp_ns)
+        out.n_points.append(scan.lidar.n_points)
+    if out.frames:
+        return out
+    if sparse:
         raise InputError(
-            f"no lidar scan on {lidar_topic} has an image on {camera_topic} within "
-            f"{config.io.pairing_tolerance_ns / 1e6:.0f} ms ({stats.lidar_frames} scans, "
-            f"{stats.camera_frames} images)"
+            f"no valid points: all {sparse} paired scans on {lidar_topic} have fewer than "
+            f"{c.min_points} valid points (empty clouds, or NaN or beyond io.max_range_m "
+            f"{config.io.max_range_m:g} m)"
         )
-    return out
+    if skips:
+        raise InputError(f"no paired frame could be decoded: {skips[0]}")
+    raise InputError(f"none of the {len(chosen)} paired frames on {lidar_topic} could be used")
+
+
+def _raise_unpaired(lidar_topic: str, camera_topic: str, stats: PairingStats, config: Config) -> NoReturn:
+    """The error of a log in which no scan has an image near it."""
+    if stats.lidar_frames == 0 or stats.camera_frames == 0:
+        raise InputError(f"no messages on {lidar_topic if stats.lidar_frames == 0 else camera_topic}")
+    raise InputError(
+        f"no lidar scan on {lidar_topic} has an image on {camera_topic} within "
+        f"{config.io.pairing_tolerance_ns / 1e6:.0f} ms ({stats.lidar_frames} scans, "
+        f"{stats.camera_frames} images)"
+    )
 
 
 def initial_guess(
@@ -270,11 +361,10 @@ def run_calibration(
         if topic not in reader.topics:
             log.warning("rectified topic %s is not in the log: ignored", topic)
     collected: dict[str, _Collected] = {}
-    with Progress(
-        total=config.calibration.frames * len(camera_topics), desc="calibration frames", quiet=quiet
-    ) as progress:
+    with Engine(scheduler=config.engine.scheduler, workers=calibration_workers(config), quiet=quiet,
+                warmups=STAGE_WARMUPS) as engine:
         for topic in camera_topics:
-            collected[topic] = collect_frames(reader, lidar_topic, topic, config, tree, progress)
+            collected[topic] = collect_frames(reader, lidar_topic, topic, config, tree, engine)
     if joint and len(camera_topics) > 1:
         results = _calibrate_joint(lidar_topic, camera_topics, collected, tree, initial, solver, quiet)
     else:

@@ -113,6 +113,57 @@ def _select(pairs: list[tuple[int, int]], max_pairs: int | None) -> list[tuple[i
     return [pairs[int(i)] for i in picks]
 
 
+@dataclass(frozen=True)
+class ChosenPair:
+    """One lidar/camera pair chosen by header stamps, nothing decoded: each message's header stamp and log
+    time, ns, and its index among its topic's messages."""
+
+    lidar_index: int
+    camera_index: int
+    lidar_stamp_ns: int
+    camera_stamp_ns: int
+    lidar_log_ns: int
+    camera_log_ns: int
+
+
+def choose_pairs(
+    reader: LogReader,
+    lidar_topic: str,
+    camera_topic: str,
+    tolerance_ns: int = DEFAULT_TOLERANCE_NS,
+    max_pairs: int | None = None,
+    *,
+    start_ns: int | None = None,
+    end_ns: int | None = None,
+    stats: PairingStats | None = None,
+) -> list[ChosenPair]:
+    """The pairs ``iter_pairs`` decodes, from one pass over the raw messages' header stamps: nearest stamps
+    within ``tolerance_ns``, ``max_pairs`` spread evenly over the log, in log order.
+
+    Raises:
+        InputError: a topic is missing or of the wrong type.
+    """
+    require_topic(reader, lidar_topic, (POINTCLOUD2,))
+    require_topic(reader, camera_topic, IMAGE_TYPES)
+    stats = stats if stats is not None else PairingStats()
+    stamps: dict[str, list[int]] = {lidar_topic: [], camera_topic: []}
+    log_times: dict[str, list[int]] = {lidar_topic: [], camera_topic: []}
+    for raw in reader.messages(topics=[lidar_topic, camera_topic], start_ns=start_ns, end_ns=end_ns):
+        stamps[raw.topic].append(raw_header_stamp_ns(raw, reader))
+        log_times[raw.topic].append(raw.log_time_ns)
+    matched = pair_stamps(stamps[lidar_topic], stamps[camera_topic], tolerance_ns)
+    stats.lidar_frames, stats.camera_frames = len(stamps[lidar_topic]), len(stamps[camera_topic])
+    stats.matched = len(matched)
+    stats.unmatched_lidar = stats.lidar_frames - stats.matched
+    if stats.unmatched_lidar:
+        log.info(
+            "%d of %d lidar frames on %s have no %s frame within %.0f ms",
+            stats.unmatched_lidar, stats.lidar_frames, lidar_topic, camera_topic, tolerance_ns / 1e6,
+        )  # fmt: skip
+    return [ChosenPair(li, ci, stamps[lidar_topic][li], stamps[camera_topic][ci], log_times[lidar_topic][li],
+                       log_times[camera_topic][ci]) for li, ci in _select(matched, max_pairs)]
+
+
 def iter_pairs(
     reader: LogReader,
     lidar_topic: str,
@@ -137,22 +188,11 @@ def iter_pairs(
     Raises:
         InputError: a topic is missing or of the wrong type.
     """
-    require_topic(reader, lidar_topic, (POINTCLOUD2,))
     camera_type = require_topic(reader, camera_topic, IMAGE_TYPES)
     stats = stats if stats is not None else PairingStats()
-    stamps: dict[str, list[int]] = {lidar_topic: [], camera_topic: []}
-    for raw in reader.messages(topics=[lidar_topic, camera_topic], start_ns=start_ns, end_ns=end_ns):
-        stamps[raw.topic].append(raw_header_stamp_ns(raw, reader))
-    matched = pair_stamps(stamps[lidar_topic], stamps[camera_topic], tolerance_ns)
-    stats.lidar_frames, stats.camera_frames = len(stamps[lidar_topic]), len(stamps[camera_topic])
-    stats.matched = len(matched)
-    stats.unmatched_lidar = stats.lidar_frames - stats.matched
-    if stats.unmatched_lidar:
-        log.info(
-            "%d of %d lidar frames on %s have no %s frame within %.0f ms",
-            stats.unmatched_lidar, stats.lidar_frames, lidar_topic, camera_topic, tolerance_ns / 1e6,
-        )  # fmt: skip
-    pairs = _select(matched, max_pairs)
+    chosen = choose_pairs(reader, lidar_topic, camera_topic, tolerance_ns, max_pairs, start_ns=start_ns,
+                          end_ns=end_ns, stats=stats)
+    pairs = [(pair.lidar_index, pair.camera_index) for pair in chosen]
     if not pairs:
         return
     yield from _decode_pairs(reader, lidar_topic, camera_topic, camera_type, pairs, stats, start_ns, end_ns,

@@ -1,0 +1,92 @@
+"""The calibration's per-frame work (decoding, lidar feature, image gradients) on the engine: the same
+frames with dask workers as in process, and as the chosen pairs decoded and built one by one; only the
+chosen messages are decoded; ``calibrate --workers 2`` gives the in-process answer."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fleetcal.pipeline.config import Config
+from fleetcal.pipeline.engine import Engine
+from fleetcal.readers.frames import load_tf_tree
+from fleetcal.readers.open import open_log
+from fleetcal.stages.calibration.frame import CalibrationFrame, build_frame
+from fleetcal.workflows.calibrate import collect_frames
+from fleetcal.workflows.cli import main
+from fleetcal.workflows.pairing import iter_pairs
+from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log
+
+LIDAR, CAMERA = "/lidar/points", "/camera_0/image_raw"
+
+
+@pytest.fixture(scope="module")
+def small_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    log = tmp_path_factory.mktemp("calib_engine") / "small.mcap"
+    simulate_log(log, SimulationOptions(frames=6, beams=16, columns=256, width=160, height=96, seed=2,
+                                        deskew=False), quiet=True)
+    return log
+
+
+def _config() -> Config:
+    config = Config()
+    config.calibration.frames = 3
+    config.calibration.feature = "intensity+range"
+    return config
+
+
+def _collect(log: Path, engine: Engine | None) -> list[CalibrationFrame]:
+    with open_log(log) as reader:
+        return collect_frames(reader, LIDAR, CAMERA, _config(), load_tf_tree(reader), engine).frames
+
+
+def _assert_same(a: list[CalibrationFrame], b: list[CalibrationFrame], motion: bool = True) -> None:
+    assert [f.stamp_ns for f in a] == [f.stamp_ns for f in b]
+    for fa, fb in zip(a, b, strict=True):
+        np.testing.assert_array_equal(fa.points_xyz, fb.points_xyz)
+        np.testing.assert_array_equal(fa.feature, fb.feature)
+        np.testing.assert_array_equal(fa.gradients.gxy, fb.gradients.gxy)
+        np.testing.assert_array_equal(np.asarray(fa.intensity), np.asarray(fb.intensity))
+        np.testing.assert_array_equal(fa.camera.K, fb.camera.K)
+        if motion:
+            np.testing.assert_array_equal(fa.point_time_offsets_s, fb.point_time_offsets_s)  # type: ignore[arg-type]
+            np.testing.assert_array_equal(fa.twist_lidar, fb.twist_lidar)  # type: ignore[arg-type]
+
+
+def test_engine_frames_are_the_in_process_frames_and_only_the_chosen_are_decoded(small_log: Path) -> None:
+    in_process = _collect(small_log, None)
+    assert len(in_process) == 3
+    assert in_process[0].feature.shape[1] == 2
+    assert all(f.twist_lidar is not None for f in in_process)  # per-point times of the skewed sweeps
+    with Engine(workers=2, quiet=True) as engine:
+        on_workers = _collect(small_log, engine)
+        assert engine.stats.frames_total == 3  # the image topic's run: the 3 chosen images of 6
+    _assert_same(in_process, on_workers)
+
+
+def test_engine_frames_are_the_pairs_built_one_by_one(small_log: Path) -> None:
+    """Reference: ``iter_pairs`` decodes the same 3 pairs spread over the log and ``build_frame`` builds
+    each in process."""
+    config = _config()
+    with open_log(small_log) as reader:
+        pairs = list(iter_pairs(reader, LIDAR, CAMERA, config.io.pairing_tolerance_ns, max_pairs=3))
+    reference = [build_frame(lidar, camera, config.calibration.feature) for lidar, camera in pairs]
+    _assert_same(reference, _collect(small_log, None), motion=False)
+
+
+def test_calibrate_on_two_workers_gives_the_in_process_answer(
+    small_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    for name, value in {"PARTICLES": "30", "ITERATIONS": "15", "REPEATS": "1", "FRAMES": "3"}.items():
+        monkeypatch.setenv(f"FLEETCAL_CALIBRATION__{name}", value)
+    answers = []
+    for workers in ("0", "2"):
+        argv = ["calibrate", str(small_log), "--workers", workers, "--no-report", "--json", "-q",
+                "--out", str(tmp_path / workers)]
+        assert main(argv) == 0
+        answers.append(json.loads(capsys.readouterr().out)["pairs"][0])
+    np.testing.assert_array_equal(answers[0]["T_camera_lidar"], answers[1]["T_camera_lidar"])
+    assert answers[0]["score"] == answers[1]["score"]
