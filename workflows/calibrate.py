@@ -12,6 +12,7 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -46,9 +47,11 @@ from fleetcal.stages.calibration.frame import (
     join_frame,
     lidar_feature_stage,
 )
+from fleetcal.stages.registration.gicp import register
 from fleetcal.stages.sinks import report
 from fleetcal.stages.sinks.tables import CALIBRATION_SCHEMA, FRAMES_SCHEMA, write_rows
-from fleetcal.workflows.ego_motion import scan_motion, sweep_motion
+from fleetcal.workflows import mapping
+from fleetcal.workflows.ego_motion import has_odometry, neighbour_twist, scan_motion, sweep_motion, twist_motion
 from fleetcal.workflows.frame_sources import STAGE_WARMUPS, LogFrames
 from fleetcal.workflows.pairing import ChosenPair, PairingStats, choose_pairs
 
@@ -74,7 +77,7 @@ class PairCalibration:
     overlay_image: NDArray[Any] | None = None  # the first frame's raw image, for overlays (only that one is kept)
     lidar_stamps_ns: list[int] = field(default_factory=list)
     n_points: list[int] = field(default_factory=list)
-    motion_compensated: bool = False
+    motion_source: str = "none"  # tf (the log's odometry), odometry (fleetcal's own) or none
     estimate_frame: str = ""  # the camera frame whose axes the translation profile is along ("": camera_frame)
     initialisation: str = "tf"  # where the initial guess came from: tf or initial
 
@@ -116,12 +119,12 @@ class PairCalibration:
             "ring_slant_deg": _finite_or_none(self.result.ring_slant_deg),
             "frames_used": self.result.frames_used,
             "runtime_s": self.result.runtime_s,
-            "motion_compensated": self.motion_compensated,
+            "motion_compensated": self.motion_source != "none",
             **{name: _finite_or_none(float(value)) for name, value in zip(STD_COLUMNS, np.concatenate(
                 self.axis_deviations()), strict=True)},
             "alike_runs": self.result.alike_runs,
             "initialisation": self.initialisation,
-            "motion_source": "tf" if self.motion_compensated else "none",
+            "motion_source": self.motion_source,
         }
 
 
@@ -163,7 +166,7 @@ class _Collected:
     n_points: list[int]
     lidar_frame: str
     camera_frame: str
-    compensated: bool
+    motion_source: str = "none"  # of the ego-motion that moved the scans to the camera stamps: tf, odometry, none
 
 
 @dataclass(frozen=True)
@@ -256,12 +259,13 @@ def collect_frames(
             source, camera_topic, camera_stage, ordered=True, desc="calibration images",
             log_times_ns=[p.camera_log_ns for p in chosen])}
         problems = lidar_problems + _problems(engine)
+        twists = _odometry_twists(engine, source, lidar_topic, chosen, scans, config, tree)
     finally:
         if own:
             engine.close()
     for message in problems:
         log.warning("skipping an undecodable frame on %s", message)
-    return _joined(chosen, scans, images, config, tree, lidar_topic, problems, blank_scans)
+    return _joined(chosen, scans, images, config, tree, lidar_topic, problems, blank_scans, twists)
 
 
 def _problems(engine: Engine) -> list[str]:
@@ -270,12 +274,45 @@ def _problems(engine: Engine) -> list[str]:
     return [m for m in engine.stats.skip_examples if not m.endswith(("stage returned None", "no valid points"))]
 
 
+def _odometry_twists(engine: Engine, source: LogFrames, lidar_topic: str, chosen: list[ChosenPair],
+                     scans: dict[int, Any], config: Config, tree: TransformTree | None) -> dict[int, NDArray[Any]]:
+    """Lidar stamp -> the lidar's twist (6,) at each chosen scan from fleetcal's own odometry, for a log whose
+    tf does not move the lidar (else, or with motion compensation off: empty): each chosen scan registered
+    (plain GICP with the mapping settings) onto the scan next to it in the log."""
+    scan = next((s for s in scans.values() if isinstance(s, LidarFeatures)), None)
+    if not config.calibration.motion_compensation or scan is None:
+        return {}
+    if has_odometry(tree, scan.lidar.frame_id.lstrip("/")):
+        return {}
+    wanted = [p for p in chosen if p.neighbour_log_ns >= 0 and isinstance(scans.get(p.lidar_stamp_ns), LidarFeatures)]
+    reg = replace(mapping.registration_config(config), method="gicp", channels="none")
+    times = sorted({p.lidar_log_ns for p in wanted} | {p.neighbour_log_ns for p in wanted})
+    sets = {ps.stamp_ns: ps for ps in engine.map_frames(source, lidar_topic, partial(mapping.prepare_scan, config=reg),
+                                                         desc="calibration odometry", log_times_ns=times)}
+    twists: dict[int, NDArray[Any]] = {}
+    for pair in wanted:
+        here, there = sets.get(pair.lidar_stamp_ns), sets.get(pair.neighbour_stamp_ns)
+        if here is None or there is None:
+            continue
+        early, late = (there, here) if pair.neighbour_stamp_ns < pair.lidar_stamp_ns else (here, there)
+        result = register(late, early, config=reg)
+        twist = neighbour_twist(result.T_target_source, (late.stamp_ns - early.stamp_ns) * 1e-9)
+        if result.converged and twist is not None:
+            twists[pair.lidar_stamp_ns] = twist
+        else:
+            log.warning("no odometry for the scan at %d: its registration with the scan at %d failed",
+                        pair.lidar_stamp_ns, pair.neighbour_stamp_ns)
+    return twists
+
+
 def _joined(chosen: list[ChosenPair], scans: dict[int, Any], images: dict[int, CameraFeatures], config: Config,
-            tree: TransformTree | None, lidar_topic: str, skips: list[str], blank_scans: int) -> _Collected:
-    """The chosen pairs whose scan and image came back, joined with their ego-motion from ``tree``
-    (``blank_scans``: chosen scans without a valid point, skipped by the engine)."""
+            tree: TransformTree | None, lidar_topic: str, skips: list[str], blank_scans: int,
+            twists: dict[int, NDArray[Any]]) -> _Collected:
+    """The chosen pairs whose scan and image came back, joined with their ego-motion from ``tree``, else
+    from ``twists`` (fleetcal's odometry, ``_odometry_twists``) (``blank_scans``: chosen scans without a valid
+    point, skipped by the engine)."""
     c = config.calibration
-    out = _Collected([], None, [], [], "", "", False)
+    out = _Collected([], None, [], [], "", "")
     sparse = blank_scans
     for pair in chosen:
         scan, image = scans.get(pair.lidar_stamp_ns), images.get(pair.camera_stamp_ns)
@@ -290,7 +327,11 @@ def _joined(chosen: list[ChosenPair], scans: dict[int, Any], images: dict[int, C
                  if c.motion_compensation and c.point_times else None)
         motion = (scan_motion(tree, out.lidar_frame, scan.lidar.stamp_ns, image.stamp_ns)
                   if c.motion_compensation and sweep is None else None)
-        out.compensated |= motion is not None or sweep is not None
+        if sweep is None and motion is None and scan.lidar.stamp_ns in twists:
+            sweep = twist_motion(scan.lidar, image.stamp_ns, twists[scan.lidar.stamp_ns])
+            out.motion_source = "odometry"
+        elif motion is not None or sweep is not None:
+            out.motion_source = "tf"
         frame = join_frame(scan, image, T_lidar_motion=motion)
         if sweep is not None:
             frame = replace(frame, point_time_offsets_s=sweep[0], twist_lidar=sweep[1])
@@ -387,7 +428,7 @@ def _pair(
 ) -> PairCalibration:
     return PairCalibration(
         lidar_topic, topic, col.lidar_frame, col.camera_frame, result, T_camera_lidar, T_init,
-        col.frames, col.overlay_image, col.lidar_stamps, col.n_points, col.compensated, estimate_frame,
+        col.frames, col.overlay_image, col.lidar_stamps, col.n_points, col.motion_source, estimate_frame,
     )  # fmt: skip
 
 
@@ -463,7 +504,7 @@ def calibration_rows(pairs: list[PairCalibration], feature: str) -> list[dict[st
             "runtime_s": p.result.runtime_s, "verdict": p.result.verdict, "verdict_reason": p.result.verdict_reason,
             **dict(zip(STD_COLUMNS, np.concatenate(p.axis_deviations()).tolist(), strict=True)),
             "initialisation": p.initialisation, "time_offset_s": float("nan"), "time_offset_std_s": float("nan"),
-            "readout_s": float("nan"), "motion_source": "tf" if p.motion_compensated else "none",
+            "readout_s": float("nan"), "motion_source": p.motion_source,
         })  # fmt: skip
     return rows
 

@@ -131,6 +131,9 @@ def add_simulation_arguments(parser: argparse.ArgumentParser, frames: int, size:
         metavar="M",
         help="lidar max range in m (default 100; 20 keeps the corridor's ends out of sight)",
     )
+    parser.add_argument("--no-odometry", action="store_true",
+                        help="write no /tf odometry (odom -> base_link): calibration then moves the scans by "
+                             "fleetcal's own odometry")
     lens = parser.add_mutually_exclusive_group()
     lens.add_argument("--fisheye", action="store_true", help="equidistant fisheye cameras instead of pinhole")
     lens.add_argument("--panorama", action="store_true",
@@ -205,6 +208,7 @@ def options_from_args(args: argparse.Namespace) -> SimulationOptions:
         seed=args.seed,
         max_range_m=args.max_range,
         deskew=not args.skewed,
+        odometry=not args.no_odometry,
         width=width,
         height=height,
     )

@@ -67,6 +67,38 @@ def sweep_motion(
     return offsets_s, twist
 
 
+def has_odometry(tree: TransformTree | None, lidar_frame: str) -> bool:
+    """Whether the tf tree moves ``lidar_frame`` over time (odometry on ``/tf``)."""
+    if tree is None:
+        return False
+    world = root_of(tree, lidar_frame)
+    return world != lidar_frame and not tree.is_static_path(world, lidar_frame)
+
+
+def neighbour_twist(T_early_late: Mat4, dt_s: float) -> NDArray[np.float64] | None:
+    """The lidar's twist (6,) (m/s, rad/s in the lidar frame) from its motion ``T_early_late`` between two
+    scans ``dt_s`` seconds apart (fleetcal's own odometry, e.g. a GICP of the two); None when ``dt_s`` is not
+    positive."""
+    if not (np.isfinite(dt_s) and dt_s > 0):
+        return None
+    return twist_of(np.asarray(T_early_late, dtype=np.float64), dt_s)
+
+
+def twist_motion(lidar: LidarFrame, camera_ns: int, twist: NDArray[np.float64]) -> tuple[
+        NDArray[np.float64], NDArray[np.float64]]:
+    """Per-point time offsets to the camera stamp (N,), s, for a known lidar ``twist``: each point's own
+    capture time where the scan carries a sweep's times (``pipeline.point_times``), else the scan stamp's;
+    with the twist, the arguments of ``compensate_ego_motion``."""
+    base = (lidar.stamp_ns - camera_ns) * 1e-9
+    times = lidar.channel("time")
+    if times is not None and np.asarray(times).size == lidar.n_points:
+        t = np.asarray(times, dtype=np.float64).ravel()
+        classified = classify_point_times(t)
+        if classified.is_sweep:
+            return np.where(np.isfinite(t), t, 0.5 * (classified.first_s + classified.last_s)) + base, twist
+    return np.full(lidar.n_points, base), twist
+
+
 def points_at(tree: TransformTree | None, lidar: LidarFrame, camera_ns: int,
               point_times: bool = True) -> NDArray[np.float64] | None:
     """The scan's points (N, 3) in the lidar frame at ``camera_ns``, metres: each point moved by the sweep's
@@ -82,4 +114,4 @@ def points_at(tree: TransformTree | None, lidar: LidarFrame, camera_ns: int,
     return compensate_ego_motion(lidar.points_xyz, T_lidar_motion=T_motion)
 
 
-__all__ = ["points_at", "scan_motion", "sweep_motion"]
+__all__ = ["has_odometry", "neighbour_twist", "points_at", "scan_motion", "sweep_motion", "twist_motion"]

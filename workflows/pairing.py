@@ -116,7 +116,8 @@ def _select(pairs: list[tuple[int, int]], max_pairs: int | None) -> list[tuple[i
 @dataclass(frozen=True)
 class ChosenPair:
     """One lidar/camera pair chosen by header stamps, nothing decoded: each message's header stamp and log
-    time, ns, and its index among its topic's messages."""
+    time, ns, and its index among its topic's messages; and the lidar scan next to it in the log (the one
+    before, or after for the first scan; -1 without one), whose motion to it gives the lidar's velocity."""
 
     lidar_index: int
     camera_index: int
@@ -124,6 +125,8 @@ class ChosenPair:
     camera_stamp_ns: int
     lidar_log_ns: int
     camera_log_ns: int
+    neighbour_stamp_ns: int = -1
+    neighbour_log_ns: int = -1
 
 
 def choose_pairs(
@@ -160,8 +163,16 @@ def choose_pairs(
             "%d of %d lidar frames on %s have no %s frame within %.0f ms",
             stats.unmatched_lidar, stats.lidar_frames, lidar_topic, camera_topic, tolerance_ns / 1e6,
         )  # fmt: skip
+    scans = len(stamps[lidar_topic])
+
+    def neighbour(li: int) -> int:
+        return li - 1 if li > 0 else (li + 1 if scans > 1 else -1)
+
     return [ChosenPair(li, ci, stamps[lidar_topic][li], stamps[camera_topic][ci], log_times[lidar_topic][li],
-                       log_times[camera_topic][ci]) for li, ci in _select(matched, max_pairs)]
+                       log_times[camera_topic][ci],
+                       stamps[lidar_topic][neighbour(li)] if neighbour(li) >= 0 else -1,
+                       log_times[lidar_topic][neighbour(li)] if neighbour(li) >= 0 else -1)
+            for li, ci in _select(matched, max_pairs)]
 
 
 def iter_pairs(

@@ -54,6 +54,10 @@ class CalibrationConfig:
             the same estimates in less time: KITTI 0.133 deg / 7.2 cm in 31 s vs 32 s; PJLab rig1 37 vs
             50 s; nuScenes joint 28 vs 32 s; KITTI from 5 deg / 0.5 m 10 of 10 seeds in 36-56 s vs
             41-64 s; simulated street 0.069 deg / 1.5 cm vs 0.060 / 1.0; the polish refines the rest.
+        swarm_frames: each seeded run's swarm scores at most this many frames, every s-th from an offset
+            its seed turns (``CalibrationProblem.swarm_frames``); the polish and all reported scores use
+            every frame. The swarm's cost then stops growing with the frames, so more frames buy accuracy
+            for the price of a polish; runs on different frames that agree confirm each other. 0: all.
         seed: seed of the first run; repeats use seed + 1, seed + 2, ...
         repeats: seeded runs; the best is returned and the spread of all runs (up to
             ``confirm_repeats`` more while no run confirms the best) is the uncertainty. One run in a
@@ -271,6 +275,7 @@ class CalibrationConfig:
     search_m: float = 0.5
     translation: str = "auto"
     n_particles: int = 200
+    swarm_frames: int = 10
     max_iterations: int = 100
     stall_iterations: int = 10
     min_iterations: int = 20
@@ -381,6 +386,8 @@ class CalibrationConfig:
             raise ConfigError(f"translation must be 'auto', 'estimate' or 'hold', got {self.translation!r}")
         if self.n_particles < 2 or self.max_iterations < 1 or self.repeats < 1 or self.confirm_repeats < 0:
             raise ConfigError("need n_particles >= 2, max_iterations >= 1, repeats >= 1 and confirm_repeats >= 0")
+        if self.swarm_frames < 0:
+            raise ConfigError(f"swarm_frames must be >= 0, got {self.swarm_frames}")
         if self.explore not in ("auto", "on", "off"):
             raise ConfigError(f"explore must be 'auto', 'on' or 'off', got {self.explore!r}")
         if self.ring_smoothing not in ("auto", "on", "off") or not self.ring_smoothing_fraction > 0:

@@ -4,7 +4,7 @@ channel and their smoothed twins) and scored for whole batches of candidate extr
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from functools import partial
 from typing import Protocol
 
@@ -130,6 +130,16 @@ def ring_slant_deg(camera: CameraModel, T_camera_lidar: Mat4) -> float:
     if across is None:
         return float("nan")
     return float(np.degrees(np.arctan2(abs(across[0]), abs(across[1]))))
+
+
+def swarm_frame_subset(n_frames: int, limit: int, seed: int) -> list[int] | None:
+    """The frames a seeded run's swarm scores: all (None) up to ``limit`` (0: no limit), else every s-th
+    frame from an offset that the seed turns (s = ceil(n_frames / limit)), so that the runs' swarms see
+    different frames of the log; the polish and every reported score use all frames."""
+    if limit <= 0 or n_frames <= limit:
+        return None
+    step = -(-n_frames // limit)
+    return list(range(seed % step, n_frames, step))
 
 
 class CalibrationProblem:
@@ -321,27 +331,29 @@ class CalibrationProblem:
         rv = Rotation.from_matrix(T_delta[:3, :3]).as_rotvec(degrees=True)
         return np.concatenate([rv, T_delta[:3, 3]])
 
-    def _batches(self, x: NDArray[np.floating], explore: bool = False) -> list[list[MetricBatch]]:
-        """Metric batches per frame and feature channel for parameters (P, D) (``explore``: against the
-        blurred image gradients)."""
+    def _batches(self, x: NDArray[np.floating], explore: bool = False,
+                 frames: Sequence[int] | None = None) -> list[list[MetricBatch]]:
+        """Metric batches per frame (``frames``: of those only; None: all) and feature channel for parameters
+        (P, D) (``explore``: against the blurred image gradients)."""
         x = np.atleast_2d(np.asarray(x, dtype=np.float64))
         T_c0 = delta_transforms(x) @ self.T_init
         focal = x[:, 6] if x.shape[1] > 6 else None
         self.evaluations += x.shape[0]
-        return [[scorer.score(T_c_c0 @ T_c0, focal) for scorer in scorers]
-                for scorers, T_c_c0 in zip(self.explore_scorers if explore else self.scorers,
-                                           self.T_camera_camera0, strict=True)]
+        scorers = self.explore_scorers if explore else self.scorers
+        chosen = range(len(scorers)) if frames is None else frames
+        return [[scorer.score(self.T_camera_camera0[k] @ T_c0, focal) for scorer in scorers[k]] for k in chosen]
 
     def _channel_counts(self, x: NDArray[np.floating]) -> list[NDArray[np.int64]]:
         """Projected points per frame and channel of the first candidate of x."""
         return [np.array([b.counts[0] for b in frame], dtype=np.int64) for frame in self._batches(x)]
 
-    def frame_scores(self, x: NDArray[np.floating], explore: bool = False) -> tuple[
-            NDArray[np.float64], NDArray[np.int64]]:
+    def frame_scores(self, x: NDArray[np.floating], explore: bool = False,
+                     frames: Sequence[int] | None = None) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
         """Per-frame scores (mean over the frame's scorers: feature channels and their ring-smoothed twins;
         a scorer projecting fewer points than its minimum scores 0) and projected-point counts (largest
-        over scorers), each (P, F), of parameters (P, D)."""
-        batches = self._batches(x, explore)
+        over scorers), each (P, F), of parameters (P, D); ``frames``: of those frames only (None: all)."""
+        batches = self._batches(x, explore, frames)
+        index = list(range(len(batches))) if frames is None else list(frames)
         per_point = self.config.explore_stride if explore else 1  # points one explore point stands for
         n = np.atleast_2d(np.asarray(x)).shape[0]
         scores = np.zeros((n, len(batches)))
@@ -349,7 +361,7 @@ class CalibrationProblem:
         for k, frame in enumerate(batches):
             for c, batch in enumerate(frame):
                 seen = batch.counts * per_point
-                scores[:, k] += np.where(seen >= self.min_counts[k][c], batch.scores, 0.0) / len(frame)
+                scores[:, k] += np.where(seen >= self.min_counts[index[k]][c], batch.scores, 0.0) / len(frame)
                 counts[:, k] = np.maximum(counts[:, k], seen)
         return scores, counts
 
@@ -368,13 +380,17 @@ class CalibrationProblem:
                     break
         return limited
 
-    def evaluate(self, x: NDArray[np.floating]) -> NDArray[np.float64]:
-        """Mean score over frames for parameters (P, D) -> (P,)."""
-        return np.asarray(self.frame_scores(x)[0].mean(axis=1))
+    def evaluate(self, x: NDArray[np.floating], frames: Sequence[int] | None = None) -> NDArray[np.float64]:
+        """Mean score over frames (``frames``: of those only) for parameters (P, D) -> (P,)."""
+        return np.asarray(self.frame_scores(x, frames=frames)[0].mean(axis=1))
 
-    def evaluate_explore(self, x: NDArray[np.floating]) -> NDArray[np.float64]:
+    def evaluate_explore(self, x: NDArray[np.floating], frames: Sequence[int] | None = None) -> NDArray[np.float64]:
         """``evaluate`` against the blurred image gradients of the exploration phase."""
-        return np.asarray(self.frame_scores(x, explore=True)[0].mean(axis=1))
+        return np.asarray(self.frame_scores(x, explore=True, frames=frames)[0].mean(axis=1))
+
+    def swarm_frames(self, seed: int) -> list[int] | None:
+        """The frames a seeded run's swarm scores (``swarm_frame_subset``)."""
+        return swarm_frame_subset(len(self.scorers), self.config.swarm_frames, seed)
 
     def free_parameters(self, hold_translation: bool = False) -> NDArray[np.bool_]:
         """(D,) which parameters the optimiser searches: those with a box of non-zero width, less the
@@ -400,14 +416,17 @@ class CalibrationProblem:
             return dataclasses.replace(result, best_x=full(result.best_x)[0])
 
         lower, upper = self.lower[free], self.upper[free]
-        swarm = particle_swarm(on_free(self.evaluate), lower, upper, n_particles=cfg.n_particles,
+        subset = self.swarm_frames(seed)
+        swarm = particle_swarm(on_free(partial(self.evaluate, frames=subset)), lower, upper,
+                               n_particles=cfg.n_particles,
                                max_iterations=cfg.max_iterations, stall_iterations=cfg.stall_iterations,
                                min_iterations=cfg.min_iterations, score_tolerance=cfg.swarm_tolerance,
                                seed=seed, x_initial=centre[free],
-                               explore_objective=on_free(self.evaluate_explore) if self.explore_scorers else None,
+                               explore_objective=(on_free(partial(self.evaluate_explore, frames=subset))
+                                                  if self.explore_scorers else None),
                                explore_iterations=cfg.explore_phase_iterations, on_iteration=self.on_iteration)
         if not cfg.polish:
             return in_full(swarm), None
         polish = pattern_search(on_free(self.evaluate), swarm.best_x, 0.1 * (upper - lower), lower, upper,
-                                min_step_fraction=0.005, score_at_x0=swarm.best_score)
+                                min_step_fraction=0.005, score_at_x0=None if subset else swarm.best_score)
         return in_full(swarm), in_full(polish)

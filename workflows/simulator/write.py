@@ -82,7 +82,8 @@ class SimulationOptions:
     ``workflows.simulator.lidar``); a rosette scan has no organised form. ``lidar_roll_deg``: the lidar
     mounted rolled about its forward axis (its rings then cross the forward camera's image slanted).
     ``beams`` / ``columns`` 0 (default): the pattern's (``DEFAULT_LAYOUT``: 64 x 1024 spinning, 6 x 4000
-    rosette), filled in on construction.
+    rosette), filled in on construction. ``odometry`` False: no ``/tf`` odometry is written (a raw sensor
+    log; the truth file still has the trajectory).
     """
 
     fmt: LogFormat = "mcap"
@@ -109,6 +110,7 @@ class SimulationOptions:
     max_range_m: float = 100.0
     lidar: str = "spinning"
     lidar_roll_deg: float = 0.0
+    odometry: bool = True
 
     def __post_init__(self) -> None:
         beams, columns = DEFAULT_LAYOUT.get(self.lidar, (0, 0))
@@ -258,7 +260,8 @@ def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet:
     tf_stamps.update(scans)
     for cam_stamps in images:
         tf_stamps.update(cam_stamps)
-    events += [(s + 1_000_000, 1, "tf", s, 0) for s in sorted(tf_stamps)]
+    if opts.odometry:
+        events += [(s + 1_000_000, 1, "tf", s, 0) for s in sorted(tf_stamps)]
     scan_latency = round(1e9 / opts.lidar_rate_hz) + 2_000_000
     events += [(s + scan_latency, 2, "lidar", k, 0) for k, s in enumerate(scans)]
     for i, cam_stamps in enumerate(images):

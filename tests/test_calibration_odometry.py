@@ -1,0 +1,63 @@
+"""Ego-motion from fleetcal's own odometry: a log without ``/tf`` odometry (``fleetcal simulate
+--no-odometry``) gets its scans moved to the camera stamps by the lidar's twist from a GICP of each chosen
+scan with the scan next to it, about as the log's tf would move them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fleetcal.pipeline.config import Config
+from fleetcal.readers.frames import load_tf_tree
+from fleetcal.readers.open import open_log
+from fleetcal.stages.calibration.frame import CalibrationFrame, compensate_ego_motion
+from fleetcal.workflows.calibrate import collect_frames
+from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log
+
+LIDAR, CAMERA = "/lidar/points", "/camera_0/image_raw"
+
+
+def _frames(log: Path, motion_compensation: bool = True) -> tuple[list[CalibrationFrame], str]:
+    config = Config()
+    config.calibration.frames = 3
+    config.calibration.feature = "intensity"
+    config.calibration.motion_compensation = motion_compensation
+    with open_log(log) as reader:
+        collected = collect_frames(reader, LIDAR, CAMERA, config, load_tf_tree(reader))
+    return collected.frames, collected.motion_source
+
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """The same skewed street at 8 m/s (points cast at their firing times, images 10-30 ms after the scans),
+    with and without /tf odometry."""
+    folder = tmp_path_factory.mktemp("odometry")
+    paths = []
+    for odometry in (True, False):
+        path = folder / f"street_{'tf' if odometry else 'raw'}.mcap"
+        simulate_log(path, SimulationOptions(frames=8, beams=32, columns=1024, width=320, height=180, seed=4,
+                                             deskew=False, odometry=odometry), quiet=True)
+        paths.append(path)
+    return paths[0], paths[1]
+
+
+def test_a_log_without_tf_odometry_is_moved_by_fleetcals_odometry(logs: tuple[Path, Path]) -> None:
+    with_tf, raw = logs
+    by_tf, tf_source = _frames(with_tf)
+    by_odometry, odometry_source = _frames(raw)
+    unmoved, none_source = _frames(raw, motion_compensation=False)
+    assert (tf_source, odometry_source, none_source) == ("tf", "odometry", "none")
+    for tf_frame, odo_frame, raw_frame in zip(by_tf, by_odometry, unmoved, strict=True):
+        assert tf_frame.twist_lidar is not None and odo_frame.twist_lidar is not None
+        np.testing.assert_allclose(odo_frame.twist_lidar[:3], tf_frame.twist_lidar[:3], atol=0.3)  # m/s of ~8
+        np.testing.assert_allclose(odo_frame.twist_lidar[3:], tf_frame.twist_lidar[3:], atol=0.02)  # rad/s
+        np.testing.assert_array_equal(odo_frame.point_time_offsets_s, tf_frame.point_time_offsets_s)
+        at_camera_tf = compensate_ego_motion(tf_frame.points_xyz, None, tf_frame.point_time_offsets_s,
+                                             tf_frame.twist_lidar)
+        at_camera_odo = compensate_ego_motion(odo_frame.points_xyz, None, odo_frame.point_time_offsets_s,
+                                              odo_frame.twist_lidar)
+        gap_m = np.linalg.norm(at_camera_odo - at_camera_tf, axis=1)
+        moved_m = np.linalg.norm(at_camera_tf - raw_frame.points_xyz, axis=1)
+        assert np.sqrt(np.mean(gap_m**2)) < 0.03 < 0.5 * np.sqrt(np.mean(moved_m**2)), (gap_m.mean(), moved_m.mean())
