@@ -19,7 +19,7 @@ from fleetcal.pipeline.errors import ProcessingError
 from fleetcal.pipeline.transforms import invert, rotation_error_deg, translation_error_m
 from fleetcal.readers.frames import load_tf_tree
 from fleetcal.readers.open import open_log
-from fleetcal.stages.calibration import CalibrationConfig, CalibrationFrame, calibrate
+from fleetcal.stages.calibration import CalibrationConfig, CalibrationFrame, CalibrationResult, calibrate
 from fleetcal.stages.calibration.calibrator import resolve_auto_rules
 from fleetcal.stages.calibration.frame import build_frame
 from fleetcal.workflows.calibrate import solver_config
@@ -83,6 +83,18 @@ def load_real_frames(name: str, feature: str = DEFAULT_FEATURE, cameras: int = 1
     return RealProblem(frames, T_init, np.asarray(pairs[0]["T_camera_lidar"], dtype=np.float64))
 
 
+def assert_confirmed_or_ambiguous(result: CalibrationResult) -> None:
+    """``recalibrated`` with another seeded run confirming the estimate, or ``suspect`` for one reason only:
+    other seeded runs that end far off score as well over the image bands, so the per-axis deviations
+    exceed 0.5 deg / 15 cm (two optima the scene does not tell apart; KITTI's two frames leave the yaw /
+    sideways ridge of its far street so, from some starts: ``benchmarks/bench_starts.py``)."""
+    if result.verdict == "recalibrated":
+        assert result.agreeing_repeats >= 1
+        return
+    assert result.verdict == "suspect" and "uncertain" in result.verdict_reason, result.verdict_reason
+    assert result.alike_runs >= 1
+
+
 def errors(T: NDArray[np.float64], T_true: NDArray[np.float64]) -> tuple[float, float]:
     return rotation_error_deg(T, T_true), translation_error_m(T, T_true)
 
@@ -141,7 +153,7 @@ def test_kitti_from_5deg_50cm_off_in_a_wide_box() -> None:
     rot, trans = errors(result.T_camera_lidar, problem.T_true)
     assert rot <= 0.3, f"rotation error {rot:.3f} deg"
     assert trans <= 0.10, f"translation error {trans:.3f} m"
-    assert result.verdict == "recalibrated" and result.agreeing_repeats >= 1  # another seeded run confirms it
+    assert_confirmed_or_ambiguous(result)
 
 
 @pytest.mark.slow
@@ -159,7 +171,7 @@ def test_kitti_from_5deg_off_in_a_box_wide_in_rotation_only() -> None:
     rot, trans = errors(result.T_camera_lidar, problem.T_true)
     assert rot <= 0.3, f"rotation error {rot:.3f} deg"
     assert trans <= 0.10, f"translation error {trans:.3f} m"
-    assert result.verdict == "recalibrated"
+    assert_confirmed_or_ambiguous(result)
 
 
 @pytest.mark.slow
