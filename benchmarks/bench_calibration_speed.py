@@ -129,17 +129,17 @@ def markdown(lines: list[list[str]], quick: bool, wall_s: float) -> str:
     return "\n".join([
         SECTION,
         "",
-        "`fleetcal calibrate` decodes its N pairs in the calling process, spread over the log, and runs the "
-        "per-frame work (lidar feature, image gradients and equalised grey) there; the search then runs in the "
-        "same process (numba threads over poses).",
+        "`fleetcal calibrate` chooses its N pairs by their stamps, spread over the log, and runs the per-frame "
+        "work (decoding, lidar feature, image gradients and equalised grey) on the engine for those messages "
+        "only (in process by default, on dask workers with `--workers N` / `--scheduler`); the search then runs "
+        "in the calling process (numba threads over poses).",
         "",
         f"`benchmarks/bench_calibration_speed.py{' --quick' if quick else ''}` ({mode}). Simulated rigs from "
         "the log's tf (2 deg / 12 cm off): `ouster64+fisheye` = 64 x 1024 organised + 1920x1208 fisheye, "
         "`hdl32+6cams` = 32 beams + six 1600x900 cameras (6: `--joint`). Each cell is one calibrate workflow "
         "in a fresh process (per-frame stages in process, `--workers 0`); points x poses / s = points in the "
         "objective x evaluations / search seconds; error of the first camera. "
-        f"Ran in {wall_s / 60:.0f} min on {platform.machine()}, 2 cores shared with other jobs (load 10-12): "
-        "the seconds and rates of one row against another are only roughly comparable.",
+        f"Ran in {wall_s / 60:.0f} min on {platform.machine()} with 2 cores.",
         "",
         "| " + " | ".join(HEADER) + " |",
         "|" + "|".join("---" for _ in HEADER) + "|",

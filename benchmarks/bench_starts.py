@@ -16,7 +16,8 @@ percentile rotation / translation error, the share within 0.3 deg / 10 cm, the s
 (outside 0.5 deg / 15 cm while not ``suspect``) and the 2-sigma coverage: the share of estimates whose
 error on every axis (rotation deg and translation m, in the camera frame) lies within twice the per-axis
 standard deviation the result reports (``CalibrationResult`` fields named ``std_*``, (3,) each); n/a
-where the results carry none. ``--markdown PATH`` writes the tables (docs/accuracy.md).
+where the results carry none. ``--markdown PATH`` writes the tables at the head of that file
+(docs/accuracy.md), keeping its ``## `` sections.
 
     .venv/bin/python benchmarks/bench_starts.py [--quick] [--cases kitti sim-16 ...] [--starts 5]
         [--deg 2] [--m 0.12] [--markdown docs/accuracy.md]
@@ -213,7 +214,7 @@ def markdown(lines: list[list[str]], args: argparse.Namespace, wall_s: float) ->
         f"`benchmarks/bench_starts.py{' --quick' if args.quick else ''}`: each case from the log's own tf and "
         f"{args.starts} start(s) {args.deg:g} deg / {100 * args.m:g} cm off the truth on random axes (seeds "
         f"1001..{1000 + args.starts}); {mode}. Ran in {wall_s / 60:.0f} min on {platform.machine()} with 2 "
-        "cores shared with other jobs (times are not comparable between runs).",
+        "cores.",
         "",
         f"Within: rotation <= {WITHIN_DEG} deg and translation <= {100 * WITHIN_M:.0f} cm. Confidently wrong: "
         f"outside {WRONG_DEG} deg / {100 * WRONG_M:.0f} cm while the verdict is not `suspect`. 2-sigma "
@@ -261,8 +262,15 @@ def main() -> None:
     for line in lines:
         print("  ".join(v.rjust(w) for v, w in zip(line, widths, strict=True)))
     if args.markdown is not None:
-        args.markdown.write_text(markdown(lines, args, time.perf_counter() - t0))
+        write_markdown(args.markdown, markdown(lines, args, time.perf_counter() - t0))
         print(f"wrote {args.markdown}")
+
+
+def write_markdown(path: Path, text: str) -> None:
+    """Write ``text`` as the head of ``path`` (up to its first ``## `` section), keeping those sections."""
+    old = path.read_text() if path.exists() else ""
+    cut = old.find("\n## ")
+    path.write_text(text.rstrip() + "\n" + (old[cut:] if cut >= 0 else ""))
 
 
 if __name__ == "__main__":
