@@ -225,6 +225,8 @@ def markdown(lines: list[list[str]], args: argparse.Namespace, wall_s: float) ->
         "|" + "|".join("---" for _ in HEADER) + "|",
         *("| " + " | ".join(line) + " |" for line in lines),
         "",
+        *([f"Not run this time: {', '.join(missing)} (`--cases`).", ""] if (missing := [
+            name for name in [*REAL, *SIM] if name not in args.cases]) else []),
         "Targets: median rotation <= 0.25 deg and translation <= 8 cm over the real logs, 90th percentile "
         "<= 0.5 deg / 15 cm, confidently wrong <= 5 %, 2-sigma coverage >= 90 %; wide-angle plumb_bob rig "
         "within 0.2 deg / 3 cm.",

@@ -124,7 +124,7 @@ def test_kitti_default_settings_from_log_tf() -> None:
 def test_kitti_from_drifted_starts_stays_within_bounds() -> None:
     """A fleet's logs each drift their own way: from three random starts 2 deg / 12 cm off (seeds of
     ``bench_starts.py``), defaults. Measured 0.14-0.19 deg / 3-5 cm; the camera sphere
-    (``--gradient-viewpoint camera``) gave 0.35 / 14, 0.57 / 24 and 0.24 / 12."""
+    (``gradient_viewpoint = "camera"``) gave 0.35 / 14, 0.57 / 24 and 0.24 / 12."""
     log_path("kitti_2011_09_26.mcap")
     problem = load_real_frames("kitti_2011_09_26.mcap")
     config = solver_config(Config())

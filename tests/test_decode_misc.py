@@ -298,7 +298,7 @@ def test_rectified_and_raw_topics_of_one_camera_get_their_own_models(tmp_path: P
 
 def test_a_rectified_topic_named_otherwise_is_rectified_when_listed(tmp_path: Path) -> None:
     """``/cam/image_color`` carries rectified images under a name that does not say so: listed in
-    ``io.rectified_topics`` (``--rectified-topic``) it gets P's intrinsics and no distortion, through the
+    ``io.rectified_topics`` it gets P's intrinsics and no distortion, through the
     pairing the calibrate workflow uses; unlisted, K and the distortion."""
     msg, K_rect = _info_with_new_camera_matrix()
     path = tmp_path / "color.mcap"

@@ -384,10 +384,10 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     elif not cfg.wide_box and weak_move_m > cfg.weak_move_max_m:
         reason = (f"the translation moved {100 * weak_move_m:.0f} cm along camera axes the log fixes weakly "
                   f"({', '.join(weak)}); more than {100 * cfg.weak_move_max_m:.0f} cm from a trusted initial "
-                  "guess needs a log with nearer structure, or --translation hold")
+                  "guess needs a log with nearer structure, or calibration.translation = \"hold\"")
     elif len(runs) == 1 and cfg.wide_box:
         reason = (f"one seeded run in a wide search box (+-{cfg.search_deg:g} deg, +-{cfg.search_m:g} m) with no "
-                  "other run to confirm it: far optima lie in such a box; use --repeats 2 or more")
+                  "other run to confirm it: far optima lie in such a box; set calibration.repeats to 2 or more")
     elif turned_deg > cfg.agree_rotation_deg:
         reason = (f"the seeded runs disagree; with the translation held they agree on a rotation {turned_deg:.2f} deg "
                   "from the best 6-DoF run's, so it is not only the translation they disagree on")
