@@ -15,7 +15,7 @@ from typing import Any
 from fleetcal.pipeline.config import Config, load_config
 from fleetcal.pipeline.engine import Engine
 from fleetcal.readers.open import open_log
-from fleetcal.workflows.calibrate import PairCalibration, run_calibration
+from fleetcal.workflows.calibrate import PairCalibration, calibration_engine, run_calibration
 from fleetcal.workflows.frame_sources import STAGE_WARMUPS
 from fleetcal.workflows.mapping import MappingOutcome, run_mapping
 from fleetcal.workflows.process import ProcessResult
@@ -56,7 +56,9 @@ def calibrate(
     with open_log(paths if len(paths) > 1 else paths[0], allow_truncated=config.io.allow_truncated) as reader:
         lidar_topic = resolve_lidar(reader, lidar)
         camera_topics = resolve_cameras(reader, list(cameras) if cameras else None)
-        return run_calibration(reader, lidar_topic, camera_topics, config, initial, joint, quiet=True)
+        with calibration_engine(config) as engine:
+            return run_calibration(reader, lidar_topic, camera_topics, config, initial, joint, quiet=True,
+                                   engine=engine)
 
 
 def map_log(

@@ -216,12 +216,12 @@ class _ChosenCameraStage:
                                     keep_image=camera.stamp_ns == self.first_ns)
 
 
-def calibration_workers(config: Config) -> int | None:
-    """Engine workers for the per-frame calibration stages: in-process (0) unless a scheduler or a worker
-    count is configured (a handful of frames does not pay for starting a local cluster)."""
-    if config.engine.scheduler is not None or config.engine.workers is not None:
-        return config.engine.workers
-    return 0
+def calibration_engine(config: Config, quiet: bool = True) -> Engine:
+    """The engine of a ``calibrate`` run: in process unless a scheduler or a worker count is configured (a
+    handful of frames does not pay for starting a local cluster)."""
+    configured = config.engine.scheduler is not None or config.engine.workers is not None
+    return Engine(scheduler=config.engine.scheduler, workers=config.engine.workers if configured else 0,
+                  quiet=quiet, warmups=STAGE_WARMUPS)
 
 
 def collect_frames(
@@ -388,8 +388,10 @@ def run_calibration(
     initial: str | None = None,
     joint: bool = False,
     quiet: bool = False,
+    engine: Engine | None = None,
 ) -> list[PairCalibration]:
-    """Calibrate every camera against the lidar (pairwise) or the whole rig at once (``joint``)."""
+    """Calibrate every camera against the lidar (pairwise) or the whole rig at once (``joint``); the per-frame
+    work runs on ``engine`` (None: in process)."""
     try:
         tree: TransformTree | None = load_tf_tree(reader)
     except InputError as err:
@@ -402,10 +404,8 @@ def run_calibration(
         if topic not in reader.topics:
             log.warning("rectified topic %s is not in the log: ignored", topic)
     collected: dict[str, _Collected] = {}
-    with Engine(scheduler=config.engine.scheduler, workers=calibration_workers(config), quiet=quiet,
-                warmups=STAGE_WARMUPS) as engine:
-        for topic in camera_topics:
-            collected[topic] = collect_frames(reader, lidar_topic, topic, config, tree, engine)
+    for topic in camera_topics:
+        collected[topic] = collect_frames(reader, lidar_topic, topic, config, tree, engine)
     if joint and len(camera_topics) > 1:
         results = _calibrate_joint(lidar_topic, camera_topics, collected, tree, initial, solver, quiet)
     else:

@@ -68,7 +68,9 @@ def run(args: argparse.Namespace) -> int:
     with open_logs(args.logs, config, quiet=args.quiet) as reader:
         lidar = resolve_lidar(reader, args.lidar)
         cameras = resolve_cameras(reader, args.camera)
-        pairs = recipe.run_calibration(reader, lidar, cameras, config, args.initial, args.joint, args.quiet)
+        with recipe.calibration_engine(config, args.quiet) as engine:
+            pairs = recipe.run_calibration(reader, lidar, cameras, config, args.initial, args.joint, args.quiet,
+                                           engine)
     write_config(config, out_dir)
     recipe.write_calibration(pairs, config, out_dir)
     if not args.no_report:

@@ -203,33 +203,34 @@ def process_log(
     with reader:
         lidar_topic = resolve_lidar(reader, None)
         cameras = resolve_cameras(reader, None)
-        t0 = time.perf_counter()
-        pairs = calib.run_calibration(reader, lidar_topic, cameras, config, quiet=quiet)
-        times["calibration"] = time.perf_counter() - t0
+        with Engine(scheduler=scheduler, workers=workers, quiet=quiet, warmups=STAGE_WARMUPS) as engine:
+            t0 = time.perf_counter()
+            pairs = calib.run_calibration(reader, lidar_topic, cameras, config, quiet=quiet, engine=engine)
+            times["calibration"] = time.perf_counter() - t0
 
-        t0 = time.perf_counter()
-        source = ColorSource(
-            tuple(paths), tuple((p.camera_topic, tuple(map(tuple, p.T_camera_lidar.tolist()))) for p in pairs),
-            config.io.pairing_tolerance_ns, config.io.allow_truncated, config.calibration.camera_model,
-            tuple(config.io.rectified_topics), config.calibration.motion_compensation, config.calibration.point_times,
-        )  # fmt: skip
-        first = next(iter(reader.messages(topics=[lidar_topic])), None)
-        has_intensity = first is not None and any(
-            f.name == "intensity" for f in reader.deserialize(first).fields)
-        map_config = dataclasses.replace(config, mapping=dataclasses.replace(
-            config.mapping, channels=_mapping_channels(config, True, has_intensity)))  # fmt: skip
-        reg = mapping.registration_config(map_config)
-        uses_color = reg.channels in ("color", "combined")
-        stage = functools.partial(prepare_colored_scan, source=source if uses_color else None, config=reg)
-        outcome = None
-        try:
-            with Engine(scheduler=scheduler, workers=workers, quiet=quiet, warmups=STAGE_WARMUPS) as engine:
+            t0 = time.perf_counter()
+            source = ColorSource(
+                tuple(paths), tuple((p.camera_topic, tuple(map(tuple, p.T_camera_lidar.tolist()))) for p in pairs),
+                config.io.pairing_tolerance_ns, config.io.allow_truncated, config.calibration.camera_model,
+                tuple(config.io.rectified_topics), config.calibration.motion_compensation,
+                config.calibration.point_times,
+            )  # fmt: skip
+            first = next(iter(reader.messages(topics=[lidar_topic])), None)
+            has_intensity = first is not None and any(
+                f.name == "intensity" for f in reader.deserialize(first).fields)
+            map_config = dataclasses.replace(config, mapping=dataclasses.replace(
+                config.mapping, channels=_mapping_channels(config, True, has_intensity)))  # fmt: skip
+            reg = mapping.registration_config(map_config)
+            uses_color = reg.channels in ("color", "combined")
+            stage = functools.partial(prepare_colored_scan, source=source if uses_color else None, config=reg)
+            outcome = None
+            try:
                 outcome = mapping.run_mapping(paths, reader, lidar_topic, map_config, engine, stage)
-        except mapping.NotEnoughScansError as err:
-            warnings.append(f"mapping skipped: {err}")
-        if outcome is not None:
-            warnings.extend(outcome.warnings())
-        times["mapping"] = time.perf_counter() - t0
+            except mapping.NotEnoughScansError as err:
+                warnings.append(f"mapping skipped: {err}")
+            if outcome is not None:
+                warnings.extend(outcome.warnings())
+            times["mapping"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
         write_toml(config, out_dir / "config.toml")
