@@ -209,7 +209,7 @@ def test_pjlab_two_frames_with_distortion() -> None:
     the seeded 6-DoF runs disagree, so ``auto`` holds the translation at the log's (11.9 cm off) and the
     rotation-only runs confirm one another: measured 0.182 deg / 12.1 cm, but ``suspect``, since their
     rotation lies 0.79 deg from the best 6-DoF run's. (The camera sphere: 0.238
-    deg / 12.1 cm, ``recalibrated``; from 5 other starts as far off it gave 0.27-0.75 deg.) The issue's 15 cm
+    deg / 12.1 cm, ``recalibrated``; from 5 other starts as far off it gave 0.27-0.75 deg.) The 15 cm bound
     is met by not moving the translation, not by estimating it. From a start 2 deg / 11 cm off on another
     axis the 6-DoF runs agree on 0.77 deg / 34 cm, having moved the translation 34 cm along axes the
     profile names weak: ``suspect`` by ``weak_move_max_m`` (``recalibrated`` without that rule)."""

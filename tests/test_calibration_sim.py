@@ -10,7 +10,7 @@ street, 1280x720 x 1024 columns: range 1.43 deg / 23.9 cm (``fleetcal calibrate 
 street, 640x360 x 512 columns: range 3.93 deg / 30.4 cm, intensity 0.249 deg / 0.96 cm.
 In the simulator the lidar intensity is the reflectivity that also paints the image, so the
 intensity feature is the right one there, while the range feature's optimum is biased (a probe at
-the truth: -0.5 deg about the optical axis scores 0.734 vs 0.677 at the truth). The issue's target
+the truth: -0.5 deg about the optical axis scores 0.734 vs 0.677 at the truth). The target
 of 0.1 deg / 2 cm on the street is reached with a box wide enough for the start (10 deg / 1 m: the
 lidar's own sphere, 0.060 deg / 1.0 cm); the default 5 deg / 0.5 m box meets it in translation only.
 """
@@ -243,7 +243,7 @@ def test_lidar_sphere_from_the_truth_stays_there_when_columns_are_dense(sim_dir:
 @pytest.mark.slow
 @pytest.mark.parametrize("feature", ["range", "normals"])
 def test_open_scene_geometric_features(sim_dir: Path, feature: str) -> None:
-    """Range and normals on the open yard: the issue asks for 0.5 deg / 10 cm; where that is missed (both,
+    """Range and normals on the open yard: the target is 0.5 deg / 10 cm; where that is missed (both,
     measured: range 4.43 deg / 81 cm, normals 7.32 deg / 106 cm (4.60 / 36 with the overlap limit at 0.5),
     each with components at the edge of the 5 deg / 0.5 m box) the estimate must carry the verdict
     ``suspect``, never a confident wrong one."""

@@ -4,7 +4,7 @@ D = -0.4398 0.2329 -0.0011 0.00021 -0.073, fx = 0.70 x width, ``fleetcal simulat
 must cull points beyond that before distorting (it used to overflow and see no point at all).
 
 Cheap settings (3 frames of a 640x360 image, 60 particles, 40 iterations, one run and no confirmation),
-from the log's tf, 2 deg / 12 cm off. Measured: 0.365 deg / 22.0 cm, ``recalibrated`` (the issue's target
+from the log's tf, 2 deg / 12 cm off. Measured: 0.365 deg / 22.0 cm, ``recalibrated`` (the accuracy target
 is 0.2 deg / 3 cm): the rotation comes within 0.4 deg, the translation keeps the decimetre bias that GOM has
 at the truth on 16 rings 2 deg apart with any lens (the pinhole VLP-16 test in test_calibration_sim.py:
 18 cm), and one cut-down run cannot be checked against another, so nothing makes it ``suspect`` here. The

@@ -113,7 +113,7 @@ class CalibrationConfig:
             objective fixes each translation component (``observability.translation_profile``): the score
             lost when the estimate's translation moves ``profile_translation_m`` along an axis of the
             (reference) camera, the rest re-fitted, over the median loss of a ``profile_rotation_deg`` turn
-            about the camera's axes (the issue's paired tolerances, 0.5 deg / 15 cm). Below
+            about the camera's axes (the paired tolerances 0.5 deg / 15 cm). Below
             ``weak_translation_ratio`` the axis is named in ``CalibrationResult.weak_translation_axes``: the
             log fixes that component less well than its rotation, treat it as rough. It never changes the
             estimate, only the verdict (``weak_move_max_m``); ``profile_translation_m`` 0 turns it off. Runtime 1-2 s.
