@@ -4,6 +4,7 @@ names they accept. Pure Python: imported by the point-set preparation and the re
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import dataclass
 
 import numpy as np
@@ -71,26 +72,14 @@ class RegistrationConfig:
     workers: int = -1
 
     def __post_init__(self) -> None:
-        if self.method not in METHODS:
-            raise ConfigError(
-                f"unknown registration method {self.method!r}; expected one of {', '.join(METHODS)}"
-            )
-        if self.channels not in CHANNEL_MODES:
-            raise ConfigError(
-                f"unknown channel mode {self.channels!r}; expected one of {', '.join(CHANNEL_MODES)}"
-            )
+        _one_of("registration method", self.method, METHODS)
+        _one_of("channel mode", self.channels, CHANNEL_MODES)
         if self.method in ("mcgicp", "color_icp") and self.channels == "none":
             raise ConfigError(
                 f"method {self.method!r} needs descriptor channels (intensity, color or combined)"
             )
-        if self.robust_kernel not in ROBUST_KERNEL_NAMES:
-            raise ConfigError(
-                f"unknown robust kernel {self.robust_kernel!r}; expected one of {', '.join(ROBUST_KERNEL_NAMES)}"
-            )
-        if self.optimizer not in OPTIMIZERS:
-            raise ConfigError(
-                f"unknown optimizer {self.optimizer!r}; expected one of {', '.join(OPTIMIZERS)}"
-            )
+        _one_of("robust kernel", self.robust_kernel, ROBUST_KERNEL_NAMES)
+        _one_of("optimizer", self.optimizer, OPTIMIZERS)
         positive = {
             "epsilon": self.epsilon,
             "max_correspondence_distance_m": self.max_correspondence_distance_m,
@@ -110,3 +99,9 @@ class RegistrationConfig:
         n = len(CHANNEL_MODES[self.channels])
         if self.channel_alpha is not None and len(self.channel_alpha) != n:
             raise ConfigError(f"channel_alpha needs {n} values for channels {self.channels!r}")
+
+
+def _one_of(what: str, value: str, allowed: Collection[str]) -> None:
+    """ConfigError naming ``what`` unless ``value`` is one of ``allowed``."""
+    if value not in allowed:
+        raise ConfigError(f"unknown {what} {value!r}; expected one of {', '.join(allowed)}")
