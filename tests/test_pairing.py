@@ -11,7 +11,7 @@ from fleetcal.pipeline.camera_model import CameraModel
 from fleetcal.pipeline.errors import ConfigError, InputError
 from fleetcal.readers.frames import camera_info_topic_for, iter_camera_frames, iter_lidar_frames
 from fleetcal.readers.open import open_log
-from fleetcal.workflows.pairing import PairingStats, iter_pairs, pair_stamps, raw_header_stamp_ns
+from fleetcal.workflows.pairing import PairingStats, choose_pairs, iter_pairs, pair_stamps, raw_header_stamp_ns
 from fleetcal.workflows.sinks import ros_messages as rm
 from fleetcal.workflows.sinks.log_writer import LogWriter
 from fleetcal.workflows.sinks.ros_messages import Profile
@@ -98,6 +98,26 @@ def test_iter_pairs_on_a_written_log(tmp_path: Path, fmt: str, name: str) -> Non
         assert [lf.stamp_ns for lf, cf in exact] == [
             lf.stamp_ns for lf, cf in pairs if cf.stamp_ns == lf.stamp_ns
         ]
+
+
+def test_chosen_pairs_carry_stamps_log_times_and_the_neighbouring_scan(tmp_path: Path) -> None:
+    """``choose_pairs`` picks the pairs ``iter_pairs`` decodes, each with its messages' stamps and log times and
+    the scan before it in the log (after it for the first scan)."""
+    lidar = [1000 * MS + i * 100 * MS for i in range(6)]
+    camera = [t + 20 * MS for t in lidar]
+    _write_rig_log(tmp_path / "rig.mcap", "mcap", lidar, camera)
+    with open_log(tmp_path / "rig.mcap") as reader:
+        chosen = choose_pairs(reader, "/lidar/points", "/cam/image_raw", max_pairs=3)
+        decoded = list(iter_pairs(reader, "/lidar/points", "/cam/image_raw", max_pairs=3))
+        log_times = {raw.topic: [] for raw in reader.messages(["/lidar/points", "/cam/image_raw"])}
+        for raw in reader.messages(["/lidar/points", "/cam/image_raw"]):
+            log_times[raw.topic].append(raw.log_time_ns)
+    assert [p.lidar_stamp_ns for p in chosen] == [lf.stamp_ns for lf, _ in decoded] == [lidar[i] for i in (0, 2, 5)]
+    assert [p.camera_stamp_ns for p in chosen] == [cf.stamp_ns for _, cf in decoded]
+    assert [p.neighbour_stamp_ns for p in chosen] == [lidar[1], lidar[1], lidar[4]]
+    assert [p.lidar_log_ns for p in chosen] == [log_times["/lidar/points"][i] for i in (0, 2, 5)]
+    assert [p.neighbour_log_ns for p in chosen] == [log_times["/lidar/points"][i] for i in (1, 1, 4)]
+    assert [p.camera_log_ns for p in chosen] == [log_times["/cam/image_raw"][i] for i in (0, 2, 5)]
 
 
 def test_iter_frames_and_errors(tmp_path: Path) -> None:
