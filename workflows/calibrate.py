@@ -47,11 +47,12 @@ from fleetcal.stages.calibration.frame import (
     join_frame,
     lidar_feature_stage,
 )
+from fleetcal.stages.registration.deskew import sweep_twist
 from fleetcal.stages.registration.gicp import register
 from fleetcal.stages.sinks import report
 from fleetcal.stages.sinks.tables import CALIBRATION_SCHEMA, FRAMES_SCHEMA, write_rows
 from fleetcal.workflows import mapping
-from fleetcal.workflows.ego_motion import has_odometry, neighbour_twist, scan_motion, sweep_motion, twist_motion
+from fleetcal.workflows.ego_motion import has_odometry, scan_motion, sweep_motion, twist_motion
 from fleetcal.workflows.frame_sources import STAGE_WARMUPS, LogFrames
 from fleetcal.workflows.pairing import ChosenPair, PairingStats, choose_pairs
 
@@ -296,7 +297,7 @@ def _odometry_twists(engine: Engine, source: LogFrames, lidar_topic: str, chosen
             continue
         early, late = (there, here) if pair.neighbour_stamp_ns < pair.lidar_stamp_ns else (here, there)
         result = register(late, early, config=reg)
-        twist = neighbour_twist(result.T_target_source, (late.stamp_ns - early.stamp_ns) * 1e-9)
+        twist = sweep_twist(result.T_target_source, (late.stamp_ns - early.stamp_ns) * 1e-9)
         if result.converged and twist is not None:
             twists[pair.lidar_stamp_ns] = twist
         else:

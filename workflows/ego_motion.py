@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from fleetcal.pipeline.errors import TransformError
 from fleetcal.pipeline.frames import LidarFrame
-from fleetcal.pipeline.point_times import classify_point_times
+from fleetcal.pipeline.point_times import PointTimes, classify_point_times
 from fleetcal.pipeline.transforms import Mat4, TransformTree, invert, root_of, twist_of
 from fleetcal.stages.calibration.frame import compensate_ego_motion
 
@@ -23,11 +23,9 @@ log = logging.getLogger(__name__)
 
 def scan_motion(tree: TransformTree | None, lidar_frame: str, scan_ns: int, camera_ns: int) -> Mat4 | None:
     """``T_lidar(camera stamp)_lidar(scan stamp)`` from the tf tree's odometry, or None without it."""
-    if tree is None or scan_ns == camera_ns:
+    if tree is None or scan_ns == camera_ns or not has_odometry(tree, lidar_frame):
         return None
     world = root_of(tree, lidar_frame)
-    if world == lidar_frame or tree.is_static_path(world, lidar_frame):
-        return None
     try:
         T_world_scan = tree.lookup(world, lidar_frame, scan_ns)
         T_world_cam = tree.lookup(world, lidar_frame, camera_ns)
@@ -44,13 +42,10 @@ def sweep_motion(
     velocity (m/s) and angular rate (rad/s) in the lidar frame, from the tf tree's odometry between the
     scan's first and last point times. None unless the scan's times are a sweep's
     (``pipeline.point_times``; NaN times count as the sweep's middle), or without odometry."""
-    times = lidar.channel("time")
-    if tree is None or times is None or lidar.n_points == 0:
+    timed = _point_times(lidar) if tree is not None else None
+    if timed is None:
         return None
-    t = np.asarray(times, dtype=np.float64).ravel()
-    if t.shape[0] != lidar.n_points:
-        return None
-    classified = classify_point_times(t)
+    t, classified = timed
     if classified.kind == "foreign":
         log.warning("scan at %d: per-point times %.3f..%.3f s from its stamp are not a sweep; the scan moves "
                     "by its stamp", lidar.stamp_ns, classified.first_s, classified.last_s)
@@ -62,9 +57,23 @@ def sweep_motion(
                                lidar.stamp_ns + round(t_first * 1e9))
     if T_first_last is None:
         return None
-    twist = twist_of(T_first_last, t_last - t_first)
-    offsets_s = np.where(np.isfinite(t), t, 0.5 * (t_first + t_last)) + (lidar.stamp_ns - camera_ns) * 1e-9
-    return offsets_s, twist
+    return _sweep_offsets(t, classified, lidar.stamp_ns, camera_ns), twist_of(T_first_last, t_last - t_first)
+
+
+def _point_times(lidar: LidarFrame) -> tuple[NDArray[np.float64], PointTimes] | None:
+    """The scan's per-point times (N,), s from its stamp, and their classification; None without a ``time``
+    channel of one value per point."""
+    times = lidar.channel("time")
+    if times is None or lidar.n_points == 0:
+        return None
+    t = np.asarray(times, dtype=np.float64).ravel()
+    return (t, classify_point_times(t)) if t.shape[0] == lidar.n_points else None
+
+
+def _sweep_offsets(t: NDArray[np.float64], sweep: PointTimes, stamp_ns: int, camera_ns: int) -> NDArray[np.float64]:
+    """Per-point capture time minus the camera stamp (N,), s, of a sweep's times ``t`` (s from the scan stamp
+    ``stamp_ns``; NaN times count as the sweep's middle)."""
+    return np.where(np.isfinite(t), t, 0.5 * (sweep.first_s + sweep.last_s)) + (stamp_ns - camera_ns) * 1e-9
 
 
 def has_odometry(tree: TransformTree | None, lidar_frame: str) -> bool:
@@ -75,28 +84,15 @@ def has_odometry(tree: TransformTree | None, lidar_frame: str) -> bool:
     return world != lidar_frame and not tree.is_static_path(world, lidar_frame)
 
 
-def neighbour_twist(T_early_late: Mat4, dt_s: float) -> NDArray[np.float64] | None:
-    """The lidar's twist (6,) (m/s, rad/s in the lidar frame) from its motion ``T_early_late`` between two
-    scans ``dt_s`` seconds apart (fleetcal's own odometry, e.g. a GICP of the two); None when ``dt_s`` is not
-    positive."""
-    if not (np.isfinite(dt_s) and dt_s > 0):
-        return None
-    return twist_of(np.asarray(T_early_late, dtype=np.float64), dt_s)
-
-
 def twist_motion(lidar: LidarFrame, camera_ns: int, twist: NDArray[np.float64]) -> tuple[
         NDArray[np.float64], NDArray[np.float64]]:
     """Per-point time offsets to the camera stamp (N,), s, for a known lidar ``twist``: each point's own
     capture time where the scan carries a sweep's times (``pipeline.point_times``), else the scan stamp's;
     with the twist, the arguments of ``compensate_ego_motion``."""
-    base = (lidar.stamp_ns - camera_ns) * 1e-9
-    times = lidar.channel("time")
-    if times is not None and np.asarray(times).size == lidar.n_points:
-        t = np.asarray(times, dtype=np.float64).ravel()
-        classified = classify_point_times(t)
-        if classified.is_sweep:
-            return np.where(np.isfinite(t), t, 0.5 * (classified.first_s + classified.last_s)) + base, twist
-    return np.full(lidar.n_points, base), twist
+    timed = _point_times(lidar)
+    if timed is not None and timed[1].is_sweep:
+        return _sweep_offsets(*timed, lidar.stamp_ns, camera_ns), twist
+    return np.full(lidar.n_points, (lidar.stamp_ns - camera_ns) * 1e-9), twist
 
 
 def points_at(tree: TransformTree | None, lidar: LidarFrame, camera_ns: int,
@@ -114,4 +110,4 @@ def points_at(tree: TransformTree | None, lidar: LidarFrame, camera_ns: int,
     return compensate_ego_motion(lidar.points_xyz, T_lidar_motion=T_motion)
 
 
-__all__ = ["has_odometry", "neighbour_twist", "points_at", "scan_motion", "sweep_motion", "twist_motion"]
+__all__ = ["has_odometry", "points_at", "scan_motion", "sweep_motion", "twist_motion"]
