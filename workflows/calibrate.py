@@ -50,17 +50,13 @@ from fleetcal.stages.calibration.frame import (
 from fleetcal.stages.registration.deskew import sweep_twist
 from fleetcal.stages.registration.gicp import register
 from fleetcal.stages.sinks import report
-from fleetcal.stages.sinks.tables import CALIBRATION_SCHEMA, FRAMES_SCHEMA, write_rows
+from fleetcal.stages.sinks.tables import CALIBRATION_SCHEMA, FRAMES_SCHEMA, STD_COLUMNS, write_rows
 from fleetcal.workflows import mapping
 from fleetcal.workflows.ego_motion import has_odometry, scan_motion, sweep_motion, twist_motion
 from fleetcal.workflows.frame_sources import STAGE_WARMUPS, LogFrames
 from fleetcal.workflows.pairing import ChosenPair, PairingStats, choose_pairs
 
 log = logging.getLogger(__name__)
-
-
-STD_COLUMNS = tuple([f"std_r{a}_deg" for a in "xyz"] + [f"std_t{a}_m" for a in "xyz"])
-"""Per-axis standard deviations in the camera's axes, as named in ``calibration.parquet`` and ``--json``."""
 
 
 @dataclass

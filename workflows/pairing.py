@@ -163,16 +163,14 @@ def choose_pairs(
             "%d of %d lidar frames on %s have no %s frame within %.0f ms",
             stats.unmatched_lidar, stats.lidar_frames, lidar_topic, camera_topic, tolerance_ns / 1e6,
         )  # fmt: skip
-    scans = len(stamps[lidar_topic])
-
-    def neighbour(li: int) -> int:
-        return li - 1 if li > 0 else (li + 1 if scans > 1 else -1)
-
-    return [ChosenPair(li, ci, stamps[lidar_topic][li], stamps[camera_topic][ci], log_times[lidar_topic][li],
-                       log_times[camera_topic][ci],
-                       stamps[lidar_topic][neighbour(li)] if neighbour(li) >= 0 else -1,
-                       log_times[lidar_topic][neighbour(li)] if neighbour(li) >= 0 else -1)
-            for li, ci in _select(matched, max_pairs)]
+    lidar_stamps, lidar_times = stamps[lidar_topic], log_times[lidar_topic]
+    chosen = []
+    for li, ci in _select(matched, max_pairs):
+        nb = li - 1 if li > 0 else (li + 1 if len(lidar_stamps) > 1 else -1)  # the scan before, or after the first
+        chosen.append(ChosenPair(li, ci, lidar_stamps[li], stamps[camera_topic][ci], lidar_times[li],
+                                 log_times[camera_topic][ci], lidar_stamps[nb] if nb >= 0 else -1,
+                                 lidar_times[nb] if nb >= 0 else -1))
+    return chosen
 
 
 def iter_pairs(

@@ -30,6 +30,10 @@ RPY_FIELDS: list[tuple[str, pa.DataType]] = [
 ]
 """The same rotation as xyz-extrinsic roll, pitch, yaw in degrees (beside ``POSE_FIELDS``)."""
 
+STD_COLUMNS = tuple([f"std_r{axis}_deg" for axis in "xyz"] + [f"std_t{axis}_m" for axis in "xyz"])
+"""Per-axis standard deviations of a calibration in its camera's axes: rotation (degrees) about, then
+translation (metres) along x, y, z."""
+
 CALIBRATION_SCHEMA = pa.schema(
     [
         ("lidar_topic", pa.string()),
@@ -46,8 +50,7 @@ CALIBRATION_SCHEMA = pa.schema(
         ("runtime_s", pa.float64()),
         ("verdict", pa.string()),
         ("verdict_reason", pa.string()),
-        *[(f"std_r{axis}_deg", pa.float64()) for axis in "xyz"],
-        *[(f"std_t{axis}_m", pa.float64()) for axis in "xyz"],
+        *[(name, pa.float64()) for name in STD_COLUMNS],
         ("initialisation", pa.string()),
         ("time_offset_s", pa.float64()),
         ("time_offset_std_s", pa.float64()),
@@ -57,7 +60,8 @@ CALIBRATION_SCHEMA = pa.schema(
 )
 """One row per lidar/camera pair: the extrinsic, its scores and verdict, per-axis standard deviations in the
 camera's axes (rotation degrees, translation metres), where the initial guess came from (``tf``,
-``initial``), and the clock terms (NaN where not estimated) and the ego-motion source (``tf``, ``none``)."""
+``initial``), and the clock terms (NaN where not estimated) and the ego-motion source (``tf``, ``odometry``,
+``none``)."""
 
 FRAMES_SCHEMA = pa.schema(
     [
