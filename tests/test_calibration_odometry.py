@@ -19,11 +19,13 @@ from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log
 LIDAR, CAMERA = "/lidar/points", "/camera_0/image_raw"
 
 
-def _frames(log: Path, motion_compensation: bool = True) -> tuple[list[CalibrationFrame], str]:
+def _frames(log: Path, motion_compensation: bool = True, point_times: bool = True) -> tuple[
+        list[CalibrationFrame], str]:
     config = Config()
     config.calibration.frames = 3
     config.calibration.feature = "intensity"
     config.calibration.motion_compensation = motion_compensation
+    config.calibration.point_times = point_times
     with open_log(log) as reader:
         collected = collect_frames(reader, LIDAR, CAMERA, config, load_tf_tree(reader))
     return collected.frames, collected.motion_source
@@ -61,3 +63,15 @@ def test_a_log_without_tf_odometry_is_moved_by_fleetcals_odometry(logs: tuple[Pa
         gap_m = np.linalg.norm(at_camera_odo - at_camera_tf, axis=1)
         moved_m = np.linalg.norm(at_camera_tf - raw_frame.points_xyz, axis=1)
         assert np.sqrt(np.mean(gap_m**2)) < 0.03 < 0.5 * np.sqrt(np.mean(moved_m**2)), (gap_m.mean(), moved_m.mean())
+
+
+def test_the_odometry_path_moves_whole_scans_by_their_stamp_when_point_times_are_off(logs: tuple[Path, Path]) -> None:
+    """``calibration.point_times = false`` (clouds de-skewed by their driver): every point of a scan gets the
+    scan stamp's offset to the camera, as on the tf path."""
+    _, raw = logs
+    frames, source = _frames(raw, point_times=False)
+    assert source == "odometry"
+    for frame in frames:
+        offsets = np.asarray(frame.point_time_offsets_s)
+        assert offsets.min() == offsets.max() and -0.05 < offsets[0] < 0  # images 10-30 ms after the scan
+

@@ -325,7 +325,7 @@ def _joined(chosen: list[ChosenPair], scans: dict[int, Any], images: dict[int, C
         motion = (scan_motion(tree, out.lidar_frame, scan.lidar.stamp_ns, image.stamp_ns)
                   if c.motion_compensation and sweep is None else None)
         if sweep is None and motion is None and scan.lidar.stamp_ns in twists:
-            sweep = twist_motion(scan.lidar, image.stamp_ns, twists[scan.lidar.stamp_ns])
+            sweep = twist_motion(scan.lidar, image.stamp_ns, twists[scan.lidar.stamp_ns], c.point_times)
             out.motion_source = "odometry"
         elif motion is not None or sweep is not None:
             out.motion_source = "tf"

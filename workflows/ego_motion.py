@@ -84,12 +84,12 @@ def has_odometry(tree: TransformTree | None, lidar_frame: str) -> bool:
     return world != lidar_frame and not tree.is_static_path(world, lidar_frame)
 
 
-def twist_motion(lidar: LidarFrame, camera_ns: int, twist: NDArray[np.float64]) -> tuple[
+def twist_motion(lidar: LidarFrame, camera_ns: int, twist: NDArray[np.float64], point_times: bool = True) -> tuple[
         NDArray[np.float64], NDArray[np.float64]]:
     """Per-point time offsets to the camera stamp (N,), s, for a known lidar ``twist``: each point's own
-    capture time where the scan carries a sweep's times (``pipeline.point_times``), else the scan stamp's;
-    with the twist, the arguments of ``compensate_ego_motion``."""
-    timed = _point_times(lidar)
+    capture time where ``point_times`` and the scan carries a sweep's times (``pipeline.point_times``), else
+    the scan stamp's; with the twist, the arguments of ``compensate_ego_motion``."""
+    timed = _point_times(lidar) if point_times else None
     if timed is not None and timed[1].is_sweep:
         return _sweep_offsets(*timed, lidar.stamp_ns, camera_ns), twist
     return np.full(lidar.n_points, (lidar.stamp_ns - camera_ns) * 1e-9), twist
