@@ -157,6 +157,15 @@ class CalibrationConfig:
             one that replaces it with the same K and D: ``plumb_bob``, ``rational_polynomial``,
             ``equidistant`` (fisheye), ``cylindrical`` (the GOM paper's panoramic model, eq. 6: u =
             fx * azimuth + cx, v = fy * y / sqrt(x^2 + z^2) + cy) or ``none`` (pinhole, D ignored).
+        time_offset: ``fixed`` (default: the camera and lidar clocks agree) or ``estimate``: find the camera's
+            clock minus the lidar's (``time_offset_s``), within +-``time_range_s``, from how the rig's motion
+            differs between frames (turns, speed changes); ``unobservable`` where it does not.
+        readout: ``fixed`` (default: ``readout_s``) or ``estimate``: find one rolling-shutter readout for the
+            cameras, within 0 to 2 x ``time_range_s``.
+        readout_s: known rolling-shutter readouts, first to last image row, seconds: ``"0.03"`` for every
+            camera, ``"/cam/image_raw=0.03"`` for one topic (later entries win); unnamed cameras: 0 (global
+            shutter).
+        time_range_s: half-width of the clock offset's search, seconds.
     """
 
     metric: Literal["gom", "nmi", "levinson"] = "gom"
@@ -175,9 +184,30 @@ class CalibrationConfig:
     motion_compensation: bool = True
     point_times: bool = True
     camera_model: Literal["log", "plumb_bob", "rational_polynomial", "equidistant", "cylindrical", "none"] = "log"
+    time_offset: Literal["fixed", "estimate"] = "fixed"
+    readout: Literal["fixed", "estimate"] = "fixed"
+    readout_s: list[str] = field(default_factory=list)
+    time_range_s: float = 0.05
+
+    def readout_of(self, topic: str) -> float:
+        """The known rolling-shutter readout of the camera on ``topic`` (``readout_s``), seconds."""
+        value = 0.0
+        for entry in self.readout_s:
+            name, sep, seconds = entry.rpartition("=")
+            if not sep or name == topic:
+                value = float(seconds)
+        return value
 
     def validate(self) -> None:
         feature_names(self.feature)
+        for entry in self.readout_s:
+            seconds = entry.rpartition("=")[2]
+            try:
+                ok = 0.0 <= float(seconds) <= 1.0
+            except ValueError:
+                ok = False
+            _require(ok, "calibration.readout_s", f"entries are SECONDS or TOPIC=SECONDS in [0, 1], got {entry!r}")
+        _require(0 < self.time_range_s <= 1.0, "calibration.time_range_s", "must be in (0, 1] s")
         _require(self.frames >= 1, "calibration.frames", "must be >= 1")
         _require(self.particles >= 1, "calibration.particles", "must be >= 1")
         _require(self.iterations >= 1, "calibration.iterations", "must be >= 1")

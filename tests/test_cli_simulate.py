@@ -207,14 +207,34 @@ def test_cli_rolled_lidar_sees_the_ground_level_through_its_tf(tmp_path: Path) -
     assert load_truth(truth_path_for(log))["lidar"]["roll_deg"] == 30.0
 
 
+def test_cli_camera_clocks_reach_the_truth_file(tmp_path: Path) -> None:
+    """``--time-offset-ms 30 --readout-ms 20``: every camera's truth pair carries 0.03 s and 0.02 s; a truth
+    file without the keys reads back as synchronised global-shutter cameras."""
+    log = tmp_path / "clocks.mcap"
+    assert main(["simulate", str(log), "--cameras", "2", "--frames", "1", "--image-size", "96x64", "--beams", "16",
+                 "--columns", "256", "--speed", "10", "--time-offset-ms", "30", "--readout-ms", "20", "-q"]) == 0
+    raw = json.loads(truth_path_for(log).read_text())
+    assert [(p["time_offset_s"], p["readout_s"]) for p in raw["pairs"]] == [(0.03, 0.02)] * 2
+    truth = load_truth(truth_path_for(log))
+    assert [(p["time_offset_s"], p["readout_s"]) for p in truth["pairs"]] == [(0.03, 0.02)] * 2
+    for pair in raw["pairs"]:
+        del pair["time_offset_s"], pair["readout_s"]
+    bare = tmp_path / "bare.truth.json"
+    bare.write_text(json.dumps(raw))
+    assert [(p["time_offset_s"], p["readout_s"]) for p in load_truth(bare)["pairs"]] == [(0.0, 0.0)] * 2
+
+
 @pytest.mark.parametrize("fmt", ["mcap", "ros1", "ros2"])
 def test_same_seed_gives_byte_identical_logs(tmp_path: Path, fmt: str) -> None:
+    """Same options, same bytes (log and truth); the camera clocks' zero values, given, are the defaults."""
     outputs = []
-    for run, seed in (("a", 11), ("b", 11), ("c", 12)):
+    clocks = {"time_offset_ms": 0.0, "readout_ms": 0.0}
+    for run, seed, extra in (("a", 11, {}), ("b", 11, {}), ("c", 12, {}), ("d", 11, clocks)):
         folder = tmp_path / run
-        simulate_log(folder / _log_name(fmt), SimulationOptions(fmt=fmt, seed=seed, **TINY))  # type: ignore[arg-type]
+        opts = SimulationOptions(fmt=fmt, seed=seed, **TINY, **extra)  # type: ignore[arg-type]
+        simulate_log(folder / _log_name(fmt), opts)
         outputs.append((_files(folder / _log_name(fmt)), truth_path_for(folder / _log_name(fmt)).read_bytes()))
-    assert outputs[0] == outputs[1]
+    assert outputs[0] == outputs[1] == outputs[3]
     assert outputs[0][0] != outputs[2][0] and outputs[0][1] != outputs[2][1]
 
 
@@ -257,7 +277,10 @@ def test_cli_simulate_json_and_truth_schema(tmp_path: Path, capsys: pytest.Captu
         "camera_frame",
         "T_camera_lidar",
         "T_camera_lidar_in_log",
+        "time_offset_s",
+        "readout_s",
     }
+    assert (truth["pairs"][0]["time_offset_s"], truth["pairs"][0]["readout_s"]) == (0.0, 0.0)
     assert [e["stamp_ns"] for e in truth["trajectory"]] == [
         1_700_000_000_000_000_000 + k * 100_000_000 for k in range(3)
     ]
@@ -278,7 +301,8 @@ def test_truth_schema_matches_shared_data(shared_data: Path, tmp_path: Path) -> 
     simulate_log(tmp_path / "s.mcap", SimulationOptions(**TINY))  # type: ignore[arg-type]
     ours = json.loads((tmp_path / "s.truth.json").read_text())
     assert {"lidar_topic", "lidar_frame", "pairs"} <= set(reference) & set(ours)
-    assert set(reference["pairs"][0]) == set(ours["pairs"][0])
+    assert set(ours["pairs"][0]) - set(reference["pairs"][0]) == {"time_offset_s", "readout_s"}
+    assert set(reference["pairs"][0]) <= set(ours["pairs"][0])
     assert (
         np.asarray(ours["pairs"][0]["T_camera_lidar"]).shape
         == np.asarray(reference["pairs"][0]["T_camera_lidar"]).shape
@@ -305,6 +329,10 @@ def test_truth_schema_matches_shared_data(shared_data: Path, tmp_path: Path) -> 
         (["--lidar", "rosette", "--organized"], "organised"),
         (["--lidar", "flash"], "--lidar"),
         (["--lidar-roll", "200"], "--lidar-roll"),
+        (["--time-offset-ms", "nan"], "--time-offset-ms"),
+        (["--time-offset-ms", "5000"], "--time-offset-ms"),
+        (["--readout-ms", "-1"], "--readout-ms"),
+        (["--readout-ms", "fast"], "--readout-ms"),
     ],
 )
 def test_cli_nonsense_arguments_get_one_line_error(

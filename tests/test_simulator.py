@@ -24,6 +24,7 @@ from fleetcal.workflows.simulator.camera import (
     pinhole_camera,
     render,
     render_depth,
+    row_times_s,
 )
 from fleetcal.workflows.simulator.lidar import ROSETTE_HALF_ANGLE_DEG, LidarModel, beam_elevations_deg, simulate_scan
 from fleetcal.workflows.simulator.motion import LoopMotion
@@ -46,7 +47,7 @@ from fleetcal.workflows.simulator.scene import (
     surface_properties,
 )
 from fleetcal.workflows.simulator.truth import build_rig, perturb
-from fleetcal.workflows.simulator.write import SimulationOptions
+from fleetcal.workflows.simulator.write import SimulationOptions, camera_pose
 
 
 # ---------------------------------------------------------------- slow NumPy references
@@ -203,12 +204,13 @@ def test_shade_kernel_matches_numpy_reference(street: Scene) -> None:
     cam = SimCamera(fisheye_camera(160, 90))
     rays, ray_ok = cam.rays()
     dirs = np.ascontiguousarray(rays @ T[:3, :3].T)
-    origin = np.ascontiguousarray(T[:3, 3])
-    t_hit, tri = cast_rays(grid, np.broadcast_to(origin, dirs.shape), dirs, t_max=500.0)
+    origins = np.repeat(T[None, :3, 3], dirs.shape[0], axis=0)
+    origins[dirs.shape[0] // 2 :] += (0.4, -0.2, 0.1)  # the lower half from another position (rolling shutter)
+    t_hit, tri = cast_rays(grid, origins, dirs, t_max=500.0)
     mix, gain, gamma = 0.3, 1.4, 2.2
     out = np.empty((dirs.shape[0], 3), dtype=np.float32)
     shade_kernel(
-        origin,
+        origins,
         dirs,
         ray_ok,
         t_hit,
@@ -235,7 +237,7 @@ def test_shade_kernel_matches_numpy_reference(street: Scene) -> None:
     sky = (tri < 0) & ray_ok
     assert hit.sum() > 1000 and sky.sum() > 100 and (~ray_ok).sum() > 100
     linear = np.zeros((dirs.shape[0], 3))
-    albedo, refl = _surface_ref(street, tri[hit], origin + dirs[hit] * t_hit[hit, None])
+    albedo, refl = _surface_ref(street, tri[hit], origins[hit] + dirs[hit] * t_hit[hit, None])
     n = street.normals[tri[hit]]
     n = np.where((np.einsum("ij,ij->i", n, dirs[hit]) > 0)[:, None], -n, n)
     shade = 0.45 + 0.55 * np.clip(n @ SUN_DIR_WORLD, 0, None)
@@ -377,6 +379,23 @@ def test_simulation_options_take_the_lidar_patterns_layout_unless_given() -> Non
         SimulationOptions(lidar="rosette", beams=64).validate()
 
 
+def test_simulation_options_clock_offset_and_readout() -> None:
+    """Milliseconds in, seconds out; 0 and 0 by default; nonsense values are refused."""
+    default = SimulationOptions()
+    assert (default.time_offset_s, default.readout_s) == (0.0, 0.0)
+    opts = SimulationOptions(time_offset_ms=-30.0, readout_ms=20.0)
+    opts.validate()
+    assert (opts.time_offset_s, opts.readout_s) == (-0.03, 0.02)
+    for kwargs, message in [
+        ({"time_offset_ms": float("nan")}, "time-offset-ms"),
+        ({"time_offset_ms": 1500.0}, "time-offset-ms"),
+        ({"readout_ms": -1.0}, "readout-ms"),
+        ({"readout_ms": float("inf")}, "readout-ms"),
+    ]:
+        with pytest.raises(ConfigError, match=message):
+            SimulationOptions(**kwargs).validate()  # type: ignore[arg-type]
+
+
 def test_rosette_scan_returns_lie_on_their_rays_over_ground() -> None:
     """A rosette pitched 45 deg down from 2 m over flat ground: each return lies on its own ray at the
     range where that ray meets the ground (noise 1.5 cm), and its line is its row."""
@@ -458,6 +477,43 @@ def test_render_is_seeded_and_sees_texture(street: Scene) -> None:
     assert np.abs(nir[..., 0].astype(int) - nir[..., 2].astype(int))[100:].mean() < 3  # grey where it hits
     with pytest.raises(ConfigError, match="spectral_mix"):
         SimCamera(cam.model, spectral_mix=1.5)
+    # one pose per row, all the same: the global-shutter image, bit for bit
+    same_rows = np.repeat(T[None], 180, axis=0)
+    np.testing.assert_array_equal(render(street, grid, cam, same_rows, np.random.default_rng(3)), a)
+    np.testing.assert_array_equal(render_depth(grid, cam, same_rows), render_depth(grid, cam, T))
+    with pytest.raises(ProcessingError, match="one per image row"):
+        render(street, grid, cam, same_rows[:-1], np.random.default_rng(3))
+
+
+def test_rolling_shutter_row_is_the_global_shutter_render_at_that_rows_time(street: Scene) -> None:
+    """Rolling shutter (50 ms readout at 10 m/s in a corner of the street block): row r of the image equals
+    row r of a global-shutter image taken at row r's time, colour (no blur, no noise) and depth alike; the
+    first row is the stamp's, most later rows differ from it."""
+    grid = build_grid(street.triangles)
+    cam = SimCamera(pinhole_camera(160, 120), blur_sigma_px=0.0, noise_dn=0.0)
+    rig = build_rig(1, street.lidar_height_m, 0.0, 0.0, seed=0)
+    motion = LoopMotion(street.route, 10.0)
+    T_base_camera = rig.T_base_cameras[0]
+    first_s, readout_s = 2.3, 0.05
+    times = row_times_s(first_s, readout_s, 120)
+    assert times[0] == first_s and times[-1] == pytest.approx(first_s + readout_s, abs=1e-12)
+    np.testing.assert_allclose(np.diff(times), readout_s / 119, rtol=1e-9)
+    per_row = np.stack([motion.T_world_base(t) @ T_base_camera for t in times])
+    poses = camera_pose(motion, T_base_camera, first_s, readout_s, 120)
+    assert poses.shape == (120, 4, 4)
+    np.testing.assert_allclose(poses, per_row, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(camera_pose(motion, T_base_camera, first_s, 0.0, 120), per_row[0])
+    rolling = render(street, grid, cam, per_row, np.random.default_rng(0))
+    depth = render_depth(grid, cam, per_row)
+    for r in (0, 37, 80, 119):
+        glob = render(street, grid, cam, per_row[r], np.random.default_rng(0))
+        np.testing.assert_array_equal(rolling[r], glob[r])
+        np.testing.assert_array_equal(depth[r], render_depth(grid, cam, per_row[r])[r])
+    at_stamp = render(street, grid, cam, per_row[0], np.random.default_rng(0))
+    changed = np.any(rolling != at_stamp, axis=(1, 2))
+    assert not changed[0] and changed.mean() > 0.7
+    with pytest.raises(ConfigError, match="readout"):
+        row_times_s(first_s, -0.01, 120)
 
 
 # ---------------------------------------------------------------- motion and rig

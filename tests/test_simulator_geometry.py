@@ -2,12 +2,14 @@
 
 Pixel convention: ``CameraModel`` pixel (u, v) is the centre of pixel (u, v). A rendered edge must sit where
 ``project`` puts the 3D edge (sub-pixel, measured with the slanted-edge method), the log must carry the
-intrinsics used for rendering, images and scans must be rendered from the poses at their header stamps,
-and the ``/tf`` odometry must give exactly the simulator's ego-motion between those stamps.
+intrinsics used for rendering, images and scans must be rendered from the poses at their header stamps
+(an image: at its stamp minus the camera's clock offset, row by row under a rolling shutter), and the ``/tf``
+odometry must give exactly the simulator's ego-motion between those stamps.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -20,12 +22,12 @@ from fleetcal.pipeline.camera_model import CameraModel
 from fleetcal.pipeline.transforms import apply, invert, rotation_error_deg, translation_error_m
 from fleetcal.readers.frames import iter_camera_frames, load_tf_tree
 from fleetcal.readers.open import open_log
-from fleetcal.workflows.simulator.camera import SimCamera, pinhole_camera, render, render_depth
+from fleetcal.workflows.simulator.camera import SimCamera, pinhole_camera, render, render_depth, row_times_s
 from fleetcal.workflows.simulator.lidar import LidarModel, simulate_scan
 from fleetcal.workflows.simulator.motion import LoopMotion
 from fleetcal.workflows.simulator.raycast import TriangleGrid, build_grid
 from fleetcal.workflows.simulator.scene import RouteSpec, Scene, SceneBuilder, build_scene
-from fleetcal.workflows.simulator.truth import ODOM_FRAME, build_rig, load_truth
+from fleetcal.workflows.simulator.truth import ODOM_FRAME, build_rig, camera_topics, load_truth, truth_path_for
 from fleetcal.workflows.simulator.write import START_NS, SimulationOptions, _event_times, simulate_log
 
 PLANE_Z_M = 6.0
@@ -175,6 +177,94 @@ def test_tf_ego_motion_between_scan_and_camera_stamps_is_exact(corner_log) -> No
     for entry in truth["trajectory"]:
         T_map_lidar = invert(T_odom_lidar0) @ tree.lookup(ODOM_FRAME, "lidar", entry["stamp_ns"])
         assert translation_error_m(T_map_lidar, entry["T_map_lidar"]) < 1e-6
+
+
+# ---------------------------------------------------------------- camera clock offset and rolling shutter
+CLOCK_OPTS = SimulationOptions(
+    frames=3, scene="open", speed_m_s=20.0, cameras=2, beams=16, columns=256, width=96, height=64, seed=7
+)
+
+
+@pytest.fixture(scope="module")
+def clock_logs(tmp_path_factory: pytest.TempPathFactory) -> dict[tuple[float, float], Path]:
+    """The same 20 m/s drive with (time offset ms, readout ms) = (0, 0), (30, 0) and (30, 20)."""
+    folder = tmp_path_factory.mktemp("clocks")
+    logs = {}
+    for offset_ms, readout_ms in ((0.0, 0.0), (30.0, 0.0), (30.0, 20.0)):
+        opts = replace(CLOCK_OPTS, time_offset_ms=offset_ms, readout_ms=readout_ms)
+        result = simulate_log(folder / f"clock_{offset_ms:g}_{readout_ms:g}.mcap", opts)
+        logs[offset_ms, readout_ms] = Path(result.log_path)
+    return logs
+
+
+def _expected_image(opts: SimulationOptions, index: int, sub: int, T_world_camera: np.ndarray, exposed_s: float):
+    """The simulator's image ``sub`` of camera ``index`` rendered from ``T_world_camera`` (its seeded noise,
+    its auto-exposure at lidar time ``exposed_s``)."""
+    scene = build_scene(opts.scene, opts.seed)
+    rng = np.random.default_rng(np.random.SeedSequence([opts.seed, 0xC0, index, sub]))
+    cam = SimCamera(pinhole_camera(opts.width, opts.height), spectral_mix=min(0.15 * index, 0.6))
+    exposure = 1.0 + 0.05 * np.sin(0.7 * exposed_s + index)
+    return render(scene, build_grid(scene.triangles), cam, T_world_camera, rng, exposure_scale=exposure)
+
+
+def test_camera_clock_offset_shows_the_scene_at_stamp_minus_offset(clock_logs) -> None:
+    """30 ms offset, global shutter: the image stamped t is, bit for bit, the global-shutter image taken at lidar
+    time t - 30 ms (60 cm earlier at 20 m/s), which differs visibly from the one taken at t."""
+    opts = replace(CLOCK_OPTS, time_offset_ms=30.0)
+    scene = build_scene(opts.scene, opts.seed)
+    motion = LoopMotion(scene.route, opts.speed)
+    rig = build_rig(opts.cameras, scene.lidar_height_m, opts.perturb_deg, opts.perturb_m, opts.seed)
+    _, image_stamps, _ = _event_times(opts)
+    with open_log(clock_logs[30.0, 0.0]) as reader:
+        for index in range(opts.cameras):
+            frames = list(iter_camera_frames(reader, camera_topics(index, False)[0]))
+            assert [f.stamp_ns for f in frames] == image_stamps[index]
+            for sub, frame in enumerate(frames):
+                exposed_s = (frame.stamp_ns - START_NS) / 1e9 - 0.03
+                T_world_camera = motion.T_world_base(exposed_s) @ rig.T_base_cameras[index]
+                expected = _expected_image(opts, index, sub, T_world_camera, exposed_s)
+                np.testing.assert_array_equal(frame.image, expected)
+                at_stamp = motion.T_world_base(exposed_s + 0.03) @ rig.T_base_cameras[index]
+                other = _expected_image(opts, index, sub, at_stamp, exposed_s)
+                assert np.mean(np.abs(other.astype(int) - expected.astype(int))) > 1.0
+
+
+def test_rolling_shutter_log_images_are_cast_row_by_row_from_the_offset_time(clock_logs) -> None:
+    """30 ms offset and 20 ms readout: each image is the render from one pose per row, row r at lidar time
+    t - 30 ms + 20 ms * r / (H - 1), and differs from the global-shutter image of the same log."""
+    opts = replace(CLOCK_OPTS, time_offset_ms=30.0, readout_ms=20.0)
+    scene = build_scene(opts.scene, opts.seed)
+    motion = LoopMotion(scene.route, opts.speed)
+    rig = build_rig(opts.cameras, scene.lidar_height_m, opts.perturb_deg, opts.perturb_m, opts.seed)
+    with open_log(clock_logs[30.0, 20.0]) as rolling, open_log(clock_logs[30.0, 0.0]) as glob:
+        for index in range(opts.cameras):
+            topic = camera_topics(index, False)[0]
+            pairs = zip(iter_camera_frames(rolling, topic), iter_camera_frames(glob, topic), strict=True)
+            for sub, (frame, global_frame) in enumerate(pairs):
+                exposed_s = (frame.stamp_ns - START_NS) / 1e9 - 0.03
+                times = row_times_s(exposed_s, 0.02, opts.height)
+                per_row = motion.T_world_base_many(times) @ rig.T_base_cameras[index]
+                np.testing.assert_array_equal(frame.image, _expected_image(opts, index, sub, per_row, exposed_s))
+                assert np.mean(np.abs(frame.image.astype(int) - global_frame.image.astype(int))) > 1.0
+
+
+def test_camera_clocks_change_only_the_images(clock_logs) -> None:
+    """Stamps, /tf odometry (lidar time), /tf_static, camera infos and scans are byte-identical with or without
+    a clock offset and rolling shutter; the images differ; the truth file records each camera's clock."""
+    images = {camera_topics(i, False)[0] for i in range(CLOCK_OPTS.cameras)}
+
+    def messages(path: Path) -> list[tuple[str, int, bytes]]:
+        with open_log(path) as reader:
+            return [(m.topic, m.log_time_ns, bytes(m.data)) for m in reader.messages()]
+
+    base = messages(clock_logs[0.0, 0.0])
+    for key in ((30.0, 0.0), (30.0, 20.0)):
+        other = messages(clock_logs[key])
+        assert [m[:2] for m in other] == [m[:2] for m in base]
+        assert [m for m in other if m[0] not in images] == [m for m in base if m[0] not in images]
+        assert all(a[2] != b[2] for a, b in zip(other, base, strict=True) if a[0] in images)
+        truth = load_truth(truth_path_for(clock_logs[key]))
+        assert [(p["time_offset_s"], p["readout_s"]) for p in truth["pairs"]] == [(key[0] / 1e3, key[1] / 1e3)] * 2
 
 
 # ---------------------------------------------------------------- 4. lidar + truth extrinsic + motion = depth

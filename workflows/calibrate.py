@@ -52,7 +52,7 @@ from fleetcal.stages.registration.gicp import register
 from fleetcal.stages.sinks import report
 from fleetcal.stages.sinks.tables import CALIBRATION_SCHEMA, FRAMES_SCHEMA, STD_COLUMNS, write_rows
 from fleetcal.workflows import mapping
-from fleetcal.workflows.ego_motion import has_odometry, scan_motion, sweep_motion, twist_motion
+from fleetcal.workflows.ego_motion import camera_twist, has_odometry, scan_motion, sweep_motion, twist_motion
 from fleetcal.workflows.frame_sources import STAGE_WARMUPS, LogFrames
 from fleetcal.workflows.pairing import ChosenPair, PairingStats, choose_pairs
 
@@ -85,6 +85,13 @@ class PairCalibration:
         turned = [np.sqrt(np.abs(R) ** 2 @ (np.asarray(std, dtype=np.float64) ** 2))
                   for std in (self.result.std_rotation_deg, self.result.std_translation_m)]
         return turned[0], turned[1]
+
+    def timing(self) -> dict[str, float]:
+        """The camera's clock offset, readout and their deviations, seconds (``CalibrationResult``'s; NaN where
+        not estimated, NaN with an infinite deviation where unobservable)."""
+        r = self.result
+        return {"time_offset_s": r.time_offset_s, "time_offset_std_s": r.time_offset_std_s,
+                "readout_s": r.readout_s, "readout_std_s": r.readout_std_s}
 
     def summary(self) -> dict[str, Any]:
         t, q = to_quat(self.T_camera_lidar)
@@ -121,12 +128,24 @@ class PairCalibration:
                 self.axis_deviations()), strict=True)},
             "alike_runs": self.result.alike_runs,
             "initialisation": self.initialisation,
+            **_timing_json(self.timing()),
             "motion_source": self.motion_source,
         }
 
 
 def _finite_or_none(value: float) -> float | None:
     return float(value) if np.isfinite(value) else None
+
+
+def _timing_json(timing: dict[str, float]) -> dict[str, float | str | None]:
+    """``PairCalibration.timing`` for JSON: a time and its deviation are ``"unobservable"`` where the deviation
+    is infinite, None where not estimated."""
+    out: dict[str, float | str | None] = {}
+    for name in ("time_offset", "readout"):
+        value, std = timing[f"{name}_s"], timing[f"{name}_std_s"]
+        out[f"{name}_s"] = "unobservable" if np.isinf(std) else _finite_or_none(value)
+        out[f"{name}_std_s"] = "unobservable" if np.isinf(std) else _finite_or_none(std)
+    return out
 
 
 def parse_initial(text: str) -> Mat4:
@@ -152,6 +171,9 @@ def solver_config(config: Config) -> SolverConfig:
         seed=c.seed,
         repeats=c.repeats,
         estimate_focal=c.estimate_focal,
+        estimate_time_offset=c.time_offset == "estimate",
+        estimate_readout=c.readout == "estimate",
+        time_range_s=c.time_range_s,
     )
 
 
@@ -329,7 +351,9 @@ def _joined(chosen: list[ChosenPair], scans: dict[int, Any], images: dict[int, C
             out.motion_source = "odometry"
         elif motion is not None or sweep is not None:
             out.motion_source = "tf"
-        frame = join_frame(scan, image, T_lidar_motion=motion)
+        frame = replace(join_frame(scan, image, T_lidar_motion=motion), readout_s=c.readout_of(image.topic),
+                        camera_twist_lidar=camera_twist(tree, out.lidar_frame, image.stamp_ns) if motion is not None
+                        else None)
         if sweep is not None:
             frame = replace(frame, point_time_offsets_s=sweep[0], twist_lidar=sweep[1])
         out.frames.append(frame)
@@ -500,8 +524,7 @@ def calibration_rows(pairs: list[PairCalibration], feature: str) -> list[dict[st
             "initial_score": p.result.initial_score, "frames_used": p.result.frames_used,
             "runtime_s": p.result.runtime_s, "verdict": p.result.verdict, "verdict_reason": p.result.verdict_reason,
             **dict(zip(STD_COLUMNS, np.concatenate(p.axis_deviations()).tolist(), strict=True)),
-            "initialisation": p.initialisation, "time_offset_s": float("nan"), "time_offset_std_s": float("nan"),
-            "readout_s": float("nan"), "motion_source": p.motion_source,
+            "initialisation": p.initialisation, **p.timing(), "motion_source": p.motion_source,
         })  # fmt: skip
     return rows
 

@@ -61,6 +61,14 @@ def common_options() -> argparse.ArgumentParser:
     return common
 
 
+def log_options() -> argparse.ArgumentParser:
+    """Options of the commands that read logs and write results (calibrate, calibrate-cameras, map, process)."""
+    options = argparse.ArgumentParser(add_help=False)
+    options.add_argument("--allow-truncated", action="store_true", help="use what is intact of a truncated log")
+    options.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    return options
+
+
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     """The whole command line; with ``only`` (a command's name, or "" for none) just that command's options
     are built and the others are listed by name and help (``fleetcal map --help`` imports no other command)."""

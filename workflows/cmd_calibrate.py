@@ -6,19 +6,20 @@ import argparse
 import sys
 from typing import Any
 
-from fleetcal.workflows.cli import COMMANDS, emit_json
+from fleetcal.workflows.cli import COMMANDS, emit_json, log_options
 
 EXAMPLES = """examples:
   fleetcal calibrate drive.mcap --out calib/                     # topics detected, initial guess from tf
   fleetcal calibrate drive.bag --lidar /velodyne_points --camera /cam0/image_raw --out calib/
   fleetcal calibrate rig.bag --joint --out calib/                # all cameras, one unknown lidar pose
   fleetcal calibrate drive.mcap --initial "0 -0.08 -0.27 -90 0 -90" --search-deg 10 --search-m 1 --out calib/
+  fleetcal calibrate drive.mcap --time-offset estimate --out calib/    # also the camera's clock offset
 """
 
 
 def register(sub: Any, common: argparse.ArgumentParser) -> None:
     p = sub.add_parser(
-        "calibrate", parents=[common], help=COMMANDS["calibrate"],
+        "calibrate", parents=[common, log_options()], help=COMMANDS["calibrate"],
         description=__doc__, epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
     )  # fmt: skip
     p.add_argument("logs", nargs="+", metavar="LOG", help="log file(s) of one recording")
@@ -33,9 +34,11 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--search-m", type=float, metavar="M", help="translation search half-width, metres")
     p.add_argument("--initial", metavar='"x y z roll pitch yaw"', help="T_camera_lidar guess (m, deg)")
     p.add_argument("--joint", action="store_true", help="all cameras at once (camera-camera tf from the log)")
-    p.add_argument("--allow-truncated", action="store_true", help="use what is intact of a truncated log")
+    p.add_argument("--time-offset", choices=["fixed", "estimate"],
+                   help="estimate the camera clock minus the lidar clock (needs a moving, turning rig)")
+    p.add_argument("--readout", choices=["fixed", "estimate"],
+                   help="estimate the rolling-shutter readout (fixed: calibration.readout_s, default 0)")
     p.add_argument("--no-report", action="store_true", help="skip the report PNGs")
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.set_defaults(func=run)
 
 
@@ -46,6 +49,8 @@ def overrides(args: argparse.Namespace) -> dict[str, Any]:
         "calibration.frames": args.frames,
         "calibration.search_deg": args.search_deg,
         "calibration.search_m": args.search_m,
+        "calibration.time_offset": args.time_offset,
+        "calibration.readout": args.readout,
         "io.allow_truncated": True if args.allow_truncated else None,
     }
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from fleetcal.workflows.cli import COMMANDS
+from fleetcal.workflows.cli import COMMANDS, log_options
 
 EXAMPLES = """examples:
   fleetcal calibrate-cameras rig.mcap --camera /cam_front/image_raw --camera /cam_side/image_raw --out cams/
@@ -14,7 +14,7 @@ EXAMPLES = """examples:
 
 def register(sub: Any, common: argparse.ArgumentParser) -> None:
     p = sub.add_parser(
-        "calibrate-cameras", parents=[common], help=COMMANDS["calibrate-cameras"],
+        "calibrate-cameras", parents=[common, log_options()], help=COMMANDS["calibrate-cameras"],
         description=__doc__ + "\nThe first --camera is the base image, the second the moving one; the map is in raw "
         "pixels, moving -> base, the median over the image pairs -> camera_camera.parquet.",
         epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -23,8 +23,6 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--camera", action="append", required=True, metavar="TOPIC",
                    help="image topic: give exactly two, the base first")
     p.add_argument("--frames", type=int, metavar="N", help="image pairs spread over the log")
-    p.add_argument("--allow-truncated", action="store_true", help="use what is intact of a truncated log")
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.set_defaults(func=run)
 
 

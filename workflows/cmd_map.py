@@ -6,7 +6,7 @@ import argparse
 import sys
 from typing import Any
 
-from fleetcal.workflows.cli import COMMANDS, emit_json
+from fleetcal.workflows.cli import COMMANDS, emit_json, log_options
 
 EXAMPLES = """examples:
   fleetcal map drive.mcap --out map/                         # lidar topic detected, intensity channel
@@ -20,7 +20,7 @@ registered) unless --workers or --scheduler asks for dask workers.
 
 def register(sub: Any, common: argparse.ArgumentParser) -> None:
     p = sub.add_parser(
-        "map", parents=[common], help=COMMANDS["map"], description=__doc__,
+        "map", parents=[common, log_options()], help=COMMANDS["map"], description=__doc__,
         epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
     )  # fmt: skip
     p.add_argument("logs", nargs="+", metavar="LOG", help="log file(s) of one recording")
@@ -32,8 +32,6 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--no-tf-odometry", action="store_true", help="ignore /tf odometry as the initial guess")
     p.add_argument("--no-deskew", action="store_true",
                    help="do not de-skew scans by their per-point times (clouds the driver already de-skewed)")
-    p.add_argument("--allow-truncated", action="store_true", help="use what is intact of a truncated log")
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.set_defaults(func=run)
 
 

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from fleetcal.workflows.cli import COMMANDS, emit_json
+from fleetcal.workflows.cli import COMMANDS, emit_json, log_options
 
 EXAMPLES = """examples:
   fleetcal process drive.mcap --out out/drive
@@ -17,14 +17,12 @@ EXAMPLES = """examples:
 
 def register(sub: Any, common: argparse.ArgumentParser) -> None:
     p = sub.add_parser(
-        "process", parents=[common], help=COMMANDS["process"],
+        "process", parents=[common, log_options()], help=COMMANDS["process"],
         description=__doc__, epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
     )  # fmt: skip
     p.add_argument("logs", nargs="+", metavar="LOG", help="log file(s) of one recording")
     p.add_argument("--channels", help="mapping channels: none | intensity | color | combined (default combined)")
     p.add_argument("--frames", type=int, metavar="N", help="calibration frames")
-    p.add_argument("--allow-truncated", action="store_true", help="use what is intact of a truncated log")
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.set_defaults(func=run)
 
 

@@ -3,8 +3,10 @@
 The vehicle drives a loop round the scene (street: a city block; corridor: a ring of 3 m corridors with
 poster-covered walls; open: a yard with painted ground) with a 10 Hz spinning (or rosette) lidar and 10 Hz
 cameras fired 10-30 ms after each scan. ``/tf_static`` carries the calibration perturbed by
-``--perturb-deg`` / ``--perturb-m`` (random axis and direction, seeded); the truth file holds the exact
-``T_camera_lidar``, the perturbed one and the lidar trajectory. The same arguments always give byte-identical files.
+``--perturb-deg`` / ``--perturb-m`` (random axis and direction, seeded). ``--time-offset-ms`` sets the cameras'
+clock minus the lidar clock and ``--readout-ms`` their rolling-shutter readout (default 0 and 0: synchronised
+global-shutter cameras). The truth file holds the exact ``T_camera_lidar``, the perturbed one, each camera's
+``time_offset_s`` and ``readout_s`` and the lidar trajectory. The same arguments always give byte-identical files.
 """
 
 from __future__ import annotations
@@ -18,7 +20,12 @@ from fleetcal.workflows.cli import COMMANDS, emit_json
 from fleetcal.workflows.simulator.lidar import DEFAULT_LAYOUT, LIDAR_PATTERNS, MAX_ROSETTE_LINES, SUPPORTED_BEAMS
 from fleetcal.workflows.simulator.scene import SCENES
 from fleetcal.workflows.simulator.truth import MAX_CAMERAS
-from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log
+from fleetcal.workflows.simulator.write import (
+    MAX_READOUT_MS,
+    MAX_TIME_OFFSET_MS,
+    SimulationOptions,
+    simulate_log,
+)
 
 EXAMPLES = """examples:
   fleetcal simulate /tmp/street.mcap --frames 20 --seed 1
@@ -28,6 +35,7 @@ EXAMPLES = """examples:
   fleetcal simulate /tmp/drift.mcap --perturb-deg 3 --perturb-m 0.2 --organized --json
   fleetcal simulate /tmp/livox.mcap --lidar rosette --skewed
   fleetcal simulate /tmp/vlp16_wide.mcap --beams 16 --wide-angle
+  fleetcal simulate /tmp/late_camera.mcap --speed 10 --time-offset-ms 30 --readout-ms 20
 """
 
 
@@ -176,6 +184,22 @@ def add_simulation_arguments(parser: argparse.ArgumentParser, frames: int, size:
         metavar="M",
         help="translation error of the calibration written to /tf_static (default 0.1)",
     )
+    parser.add_argument(
+        "--time-offset-ms",
+        type=_float_range(-MAX_TIME_OFFSET_MS, MAX_TIME_OFFSET_MS),
+        default=0.0,
+        metavar="MS",
+        help="every camera's clock minus the lidar clock, ms: an image stamped t shows the scene at lidar "
+        "time t - MS (default 0)",
+    )
+    parser.add_argument(
+        "--readout-ms",
+        type=_float_range(0.0, MAX_READOUT_MS),
+        default=0.0,
+        metavar="MS",
+        help="rolling shutter: every camera exposes its rows top to bottom over MS ms, the stamp being the "
+        "first row's time (default 0: global shutter)",
+    )
     parser.add_argument("--seed", type=_int_range(0, 2**63 - 1), default=0, help="default 0")
     parser.add_argument(
         "--skewed",
@@ -209,6 +233,8 @@ def options_from_args(args: argparse.Namespace) -> SimulationOptions:
         max_range_m=args.max_range,
         deskew=not args.skewed,
         odometry=not args.no_odometry,
+        time_offset_ms=args.time_offset_ms,
+        readout_ms=args.readout_ms,
         width=width,
         height=height,
     )

@@ -60,6 +60,14 @@ def sweep_motion(
     return _sweep_offsets(t, classified, lidar.stamp_ns, camera_ns), twist_of(T_first_last, t_last - t_first)
 
 
+def camera_twist(tree: TransformTree | None, lidar_frame: str, camera_ns: int,
+                 half_window_ns: int = 25_000_000) -> NDArray[np.float64] | None:
+    """The lidar's twist (6,) about ``camera_ns``: velocity (m/s) and angular rate (rad/s) in the lidar frame,
+    from the tf tree's odometry over +-``half_window_ns``; None without it."""
+    T_before_after = scan_motion(tree, lidar_frame, camera_ns + half_window_ns, camera_ns - half_window_ns)
+    return None if T_before_after is None else twist_of(T_before_after, 2 * half_window_ns * 1e-9)
+
+
 def _point_times(lidar: LidarFrame) -> tuple[NDArray[np.float64], PointTimes] | None:
     """The scan's per-point times (N,), s from its stamp, and their classification; None without a ``time``
     channel of one value per point."""
@@ -110,4 +118,4 @@ def points_at(tree: TransformTree | None, lidar: LidarFrame, camera_ns: int,
     return compensate_ego_motion(lidar.points_xyz, T_lidar_motion=T_motion)
 
 
-__all__ = ["has_odometry", "points_at", "scan_motion", "sweep_motion", "twist_motion"]
+__all__ = ["camera_twist", "has_odometry", "points_at", "scan_motion", "sweep_motion", "twist_motion"]

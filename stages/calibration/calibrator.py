@@ -38,8 +38,16 @@ from fleetcal.pipeline.transforms import rotation_error_deg, translation_error_m
 from fleetcal.stages.calibration.config import CalibrationConfig
 from fleetcal.stages.calibration.frame import CalibrationFrame, Mat4, fold_rectification
 from fleetcal.stages.calibration.observability import AXES, translation_profile, weak_axes
-from fleetcal.stages.calibration.problem import CalibrationProblem, ring_slant_deg
+from fleetcal.stages.calibration.problem import CalibrationProblem, embed, ring_slant_deg
+from fleetcal.stages.calibration.pso import pattern_search
 from fleetcal.stages.calibration.sphere_gradients import cross_ring_neighbours, ring_spacing_rad, sphere_coordinates
+from fleetcal.stages.calibration.timing import (
+    TimeShift,
+    TimeShiftField,
+    TimingEstimate,
+    estimate_timing,
+    extrinsic_deviation,
+)
 from fleetcal.stages.calibration.uncertainty import axis_deviations, sampling_floor
 
 Verdict = Literal["ok", "recalibrated", "suspect"]
@@ -98,6 +106,12 @@ class CalibrationResult:
             best, and the scan's sampling cell); translation NaN where held. The verdict is ``suspect`` where
             twice a deviation exceeds ``agree_rotation_deg`` / ``agree_translation_m``.
         alike_runs: other seeded runs that score as well as the best.
+        time_offset_s, time_offset_std_s: the camera's clock minus the lidar's and its deviation, seconds
+            (``CalibrationConfig.estimate_time_offset``); NaN where not estimated; where the log's motion does
+            not constrain it, NaN with an infinite deviation (unobservable). An offset's deviation times the
+            rig's mean velocity is part of ``std_translation_m``.
+        readout_s, readout_std_s: the rolling-shutter readout used (the frames' own, or estimated with
+            ``estimate_readout``, then with its deviation; unobservable as for the offset), seconds.
     """
 
     T_camera_lidar: Mat4
@@ -130,6 +144,10 @@ class CalibrationResult:
     std_rotation_deg: NDArray[np.float64] = dataclasses.field(default_factory=lambda: np.full(3, np.nan))
     std_translation_m: NDArray[np.float64] = dataclasses.field(default_factory=lambda: np.full(3, np.nan))
     alike_runs: int = 0
+    time_offset_s: float = float("nan")
+    time_offset_std_s: float = float("nan")
+    readout_s: float = float("nan")
+    readout_std_s: float = float("nan")
 
 
 PARAMETER_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz", "focal_scale")
@@ -315,6 +333,9 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     auto_angle = config.neighbours_by == "auto" and cfg.neighbours_by == "angle"
     problem = CalibrationProblem(frames, T_camera_lidar_init, cfg)
     centre = 0.5 * (problem.lower + problem.upper)
+    clock_field = _time_field(problem)
+    if clock_field is not None:  # known rolling shutters move the points to their rows' times
+        clock_field.apply(TimeShift(), clock_field.row_fractions(centre))
     start = time.perf_counter()
     init_scores, _ = problem.frame_scores(centre[None])
     hold = cfg.holds_translation
@@ -330,6 +351,9 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
             runs, best_index, hold = held_runs, held_best, True
     best_run = runs[best_index]
     score, x_best, iterations = best_run.score, best_run.x, best_run.iterations
+    timing = _estimate_timing(problem, clock_field, x_best, hold, cfg)
+    if timing is not None:
+        score, x_best = timing.score, timing.x
     profile = np.full(3, np.nan)
     if not hold and cfg.profile_translation_m > 0:
         profile = translation_profile(problem, x_best, score, cfg.profile_translation_m, cfg.profile_rotation_deg)
@@ -339,7 +363,10 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         raise ProcessingError(
             f"the camera sees {int(counts.sum())} lidar points at the best pose in the search box "
             f"(+-{cfg.search_deg} deg, +-{cfg.search_m} m around the initial guess); need {cfg.min_points}")
-    T_best = best_run.T_camera_lidar
+    T_best = problem.T_camera_lidar(x_best)
+    if clock_field is not None:  # the mean ego-motion the searched extrinsic absorbed
+        shift = timing.shift if timing is not None else TimeShift()
+        T_best = T_best @ clock_field.extrinsic_correction(shift, clock_field.row_fractions(x_best))
     rot_std = trans_std = float("nan")
     if len(runs) > 1:
         Ts = [run.T_camera_lidar for run in runs]
@@ -357,7 +384,9 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     ring_deg, slant_deg = (_finite_median(problem.ring_spacing_rad, np.degrees),
                            _finite_median(problem.ring_slant_deg))
     deviations = axis_deviations(problem, x_best, [run.x for i, run in enumerate(runs) if i != best_index],
-                                 sampling_floor(ring_deg, problem.pixel_deg(), *problem.typical_range_and_off_axis()),
+                                 np.hypot(sampling_floor(ring_deg, problem.pixel_deg(),
+                                                         *problem.typical_range_and_off_axis()),
+                                          _timing_floor(clock_field, timing, cfg, T_best)),
                                  problem.free_parameters(hold))
     uncertain = _uncertain_axes(deviations.rotation_deg, deviations.translation_m, cfg)
     reason = ""
@@ -415,7 +444,58 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         weak_translation_axes=weak, ring_spacing_deg=ring_deg,
         sparse_rings=bool(ring_deg > cfg.sparse_rings_above_deg), ring_slant_deg=slant_deg,
         std_rotation_deg=deviations.rotation_deg, std_translation_m=deviations.translation_m,
-        alike_runs=deviations.alike_runs)
+        alike_runs=deviations.alike_runs, **_timing_fields(problem, timing, cfg))
+
+
+def _time_field(problem: CalibrationProblem) -> TimeShiftField | None:
+    """The points' motion in time (``timing.TimeShiftField``) where some frame moves; None otherwise."""
+    field = TimeShiftField(problem, [f.twist_at_camera() for f in problem.frames],
+                           [f.readout_s for f in problem.frames])
+    return field if field.moving else None
+
+
+def _estimate_timing(problem: CalibrationProblem, field: TimeShiftField | None, x: NDArray[np.float64], hold: bool,
+                     cfg: CalibrationConfig) -> TimingEstimate | None:
+    """The clock offset and readout found at the estimate x (D,) and the extrinsic refined under them; None
+    where neither is asked for or no frame moves (nothing to find them from)."""
+    if field is None or not (cfg.estimate_time_offset or cfg.estimate_readout):
+        return None
+    free = problem.free_parameters(hold)
+    lower, upper = problem.lower[free], problem.upper[free]
+
+    def refine(x0: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
+        result = pattern_search(lambda z: problem.evaluate(embed(z, x0, free)), x0[free], 0.02 * (upper - lower),
+                                lower, upper, min_step_fraction=0.02)
+        return embed(result.best_x, x0, free)[0], result.best_score
+
+    return estimate_timing(field, x, TimeShift(), cfg.estimate_time_offset, cfg.estimate_readout, cfg.time_range_s,
+                           refine)
+
+
+def _timing_floor(field: TimeShiftField | None, timing: TimingEstimate | None, cfg: CalibrationConfig,
+                  T_best: Mat4) -> NDArray[np.float64]:
+    """(6,) extrinsic deviations left by an estimated clock offset's own (``timing.extrinsic_deviation``);
+    zeros where the offset was not estimated."""
+    if field is None or timing is None or not cfg.estimate_time_offset:
+        return np.zeros(6)
+    R = np.asarray(T_best, dtype=np.float64)[:3, :3]
+    return extrinsic_deviation(field, timing.offset_std_s, cfg.time_range_s, R)
+
+
+def _timing_fields(problem: CalibrationProblem, timing: TimingEstimate | None,
+                   cfg: CalibrationConfig) -> dict[str, float]:
+    """``CalibrationResult``'s time fields (see there): NaN with an infinite deviation where a time asked for
+    could not be found (no motion, or a profile that does not tell)."""
+    out = {"readout_s": float(np.mean([f.readout_s for f in problem.frames]))}
+    if cfg.estimate_time_offset:
+        found = timing is not None and np.isfinite(timing.offset_std_s)
+        out["time_offset_s"] = timing.shift.offset_s if found and timing is not None else float("nan")
+        out["time_offset_std_s"] = timing.offset_std_s if found and timing is not None else float("inf")
+    if cfg.estimate_readout:
+        readout = timing.shift.readout_s if timing is not None and np.isfinite(timing.readout_std_s) else None
+        out["readout_s"] = float("nan") if readout is None else readout
+        out["readout_std_s"] = float("inf") if readout is None or timing is None else timing.readout_std_s
+    return out
 
 
 def _uncertain_axes(std_rotation_deg: NDArray[np.float64], std_translation_m: NDArray[np.float64],

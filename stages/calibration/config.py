@@ -268,6 +268,9 @@ class CalibrationConfig:
             translation is biased by 18 cm at the truth) vs 0 of 5; nuScenes joint+ego 0.58 deg / 31 cm vs
             0.53 / 37 (box 10 deg / 1 m: 0.67 / 22 vs 0.53 / 37), without ego-motion 0.60 / 26
             ``recalibrated`` vs 0.98 / 53 ``suspect``. Runtime: the GOM terms double (nuScenes 44 vs 27 s).
+        estimate_time_offset, estimate_readout: also estimate the camera's clock offset (within +-
+            ``time_range_s``) and its rolling-shutter readout (within 0..2 ``time_range_s``), seconds, after the
+            extrinsic search, from the frames' ego-motion (``stages.calibration.timing``).
     """
 
     metric: str = "gom"
@@ -326,6 +329,9 @@ class CalibrationConfig:
     explore_stride: int = 4
     ring_smoothing: str = "auto"
     ring_smoothing_fraction: float = 1.0 / 3.0
+    estimate_time_offset: bool = False
+    estimate_readout: bool = False
+    time_range_s: float = 0.05
 
     @property
     def swarm_tolerance(self) -> float:
@@ -378,6 +384,8 @@ class CalibrationConfig:
         return "lsq" if self.viewpoint == "lidar" else "paper"
 
     def validate(self) -> None:
+        if not 0 < self.time_range_s <= 1.0:
+            raise ConfigError(f"time_range_s must be in (0, 1] s, got {self.time_range_s}")
         if self.metric not in METRICS:
             raise ConfigError(f"unknown metric {self.metric!r}; expected one of {', '.join(METRICS)}")
         if not (0 < self.search_deg <= 45 and 0 <= self.search_m <= 5):

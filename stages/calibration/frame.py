@@ -55,6 +55,10 @@ class CalibrationFrame:
             used with ``twist_lidar`` for motion during the sweep (each point then moves by its own
             offset; ``T_lidar_motion`` is then normally None).
         twist_lidar: (6,) optional lidar velocity (vx, vy, vz m/s, wx, wy, wz rad/s) in the lidar frame.
+        camera_twist_lidar: (6,) optional lidar twist (as ``twist_lidar``) about the camera stamp: moves the
+            points on by a clock offset or a rolling shutter's row time (``stages.calibration.timing``); None:
+            ``twist_lidar``'s, if any.
+        readout_s: the camera's rolling-shutter readout, first to last row, seconds (0: global shutter).
         stamp_ns: camera stamp (for reports).
         label: free text (e.g. the camera topic).
     """
@@ -69,6 +73,8 @@ class CalibrationFrame:
     T_lidar_motion: Mat4 | None = None
     point_time_offsets_s: NDArray[np.floating] | None = None
     twist_lidar: NDArray[np.floating] | None = None
+    camera_twist_lidar: NDArray[np.floating] | None = None
+    readout_s: float = 0.0
     stamp_ns: int = 0
     label: str = ""
 
@@ -76,6 +82,11 @@ class CalibrationFrame:
         """(N, 3) points moved to the camera stamp (``compensate_ego_motion``), lidar frame, metres."""
         return compensate_ego_motion(self.points_xyz, self.T_lidar_motion, self.point_time_offsets_s,
                                      self.twist_lidar)
+
+    def twist_at_camera(self) -> NDArray[np.float64] | None:
+        """(6,) lidar twist about the camera stamp (``camera_twist_lidar``, else ``twist_lidar``); None: unknown."""
+        twist = self.camera_twist_lidar if self.camera_twist_lidar is not None else self.twist_lidar
+        return None if twist is None else np.asarray(twist, dtype=np.float64).reshape(6)
 
     def motion_rotation(self) -> NDArray[np.float64] | None:
         """3x3 rotation of the lidar frame from capture to the camera stamp (a sweep's at its median point

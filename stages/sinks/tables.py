@@ -55,6 +55,7 @@ CALIBRATION_SCHEMA = pa.schema(
         ("time_offset_s", pa.float64()),
         ("time_offset_std_s", pa.float64()),
         ("readout_s", pa.float64()),
+        ("readout_std_s", pa.float64()),
         ("motion_source", pa.string()),
     ]
 )

@@ -2,7 +2,8 @@
 
 Pixel value = exposure x (spectral mix of albedo and reflectivity) x (ambient + diffuse sun shading),
 sRGB gamma, slight Gaussian blur and sensor noise; rays that miss see a sky gradient. No shadows.
-Camera frame: optical (x right, y down, z forward).
+Camera frame: optical (x right, y down, z forward). A global-shutter image is cast from one camera pose, a
+rolling-shutter image from one pose per image row (``row_times_s``).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from scipy.spatial.transform import Rotation
 from scipy.special import ndtri
 
 from fleetcal.pipeline.camera_model import CameraModel
-from fleetcal.pipeline.errors import ConfigError
+from fleetcal.pipeline.errors import ConfigError, ProcessingError
 from fleetcal.workflows.simulator.raycast import TriangleGrid, cast_rays, run_chunked
 from fleetcal.workflows.simulator.raycast_kernels import shade_kernel
 from fleetcal.workflows.simulator.scene import MATERIAL_ALBEDO, MATERIAL_REFLECTIVITY, Scene
@@ -133,6 +134,35 @@ def _pixel_rays(key: tuple[object, ...], m: CameraModel) -> tuple[NDArray[np.flo
     return rays, ok
 
 
+def row_times_s(first_row_s: float, readout_s: float, height: int) -> NDArray[np.float64]:
+    """(H,) exposure times (s, on the clock of ``first_row_s``) of image rows 0..H-1 of a rolling-shutter
+    camera whose rows are exposed one after another over ``readout_s`` seconds from the first to the last:
+    ``first_row_s + readout_s * r / (H - 1)``."""
+    if not (np.isfinite(readout_s) and readout_s >= 0):
+        raise ConfigError(f"readout must be a non-negative number of seconds, got {readout_s}")
+    rows = np.arange(height, dtype=np.float64)
+    return first_row_s + readout_s * rows / max(height - 1, 1)
+
+
+def _world_rays(
+    camera: SimCamera, T_world_camera: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(H*W, 3) ray origins and directions (world frame, m) of the pixel centres seen from one optical-frame
+    pose (4, 4) or from one pose per image row (H, 4, 4); both C-contiguous."""
+    rays_cam, _ = camera.rays()
+    m = camera.model
+    T = np.asarray(T_world_camera, dtype=np.float64)
+    if T.shape == (4, 4):
+        t = np.ascontiguousarray(T[:3, 3])
+        dirs = np.ascontiguousarray(np.einsum("ij,kj->ik", rays_cam, T[:3, :3]))
+        return np.ascontiguousarray(np.broadcast_to(t, dirs.shape)), dirs
+    if T.shape != (m.height, 4, 4):
+        raise ProcessingError(f"camera pose must be (4, 4) or one per image row ({m.height}, 4, 4), got {T.shape}")
+    rows = rays_cam.reshape(m.height, m.width, 3)
+    dirs = np.einsum("hwj,hij->hwi", rows, np.ascontiguousarray(T[:, :3, :3])).reshape(-1, 3)
+    return np.ascontiguousarray(np.repeat(T[:, :3, 3], m.width, axis=0)), np.ascontiguousarray(dirs)
+
+
 def render(
     scene: Scene,
     grid: TriangleGrid,
@@ -142,21 +172,22 @@ def render(
     exposure_scale: float = 1.0,
     threads: int | None = None,
 ) -> NDArray[np.uint8]:
-    """(H, W, 3) uint8 RGB image seen from ``T_world_camera`` (optical frame pose in the world).
+    """(H, W, 3) uint8 RGB image seen from ``T_world_camera``: the optical frame's pose in the world, (4, 4)
+    for a global shutter, or (H, 4, 4) one pose per image row for a rolling shutter (row r is cast from
+    ``T_world_camera[r]``; see ``row_times_s``).
 
     ``rng`` draws the sensor noise; ``exposure_scale`` multiplies the camera's exposure (auto-exposure drift).
     """
     m = camera.model
-    rays_cam, ray_ok = camera.rays()
-    R, t = T_world_camera[:3, :3], np.ascontiguousarray(T_world_camera[:3, 3], dtype=np.float64)
-    dirs = np.ascontiguousarray(np.einsum("ij,kj->ik", rays_cam, R))
-    t_hit, tri = cast_rays(grid, np.broadcast_to(t, dirs.shape), dirs, t_max=500.0, threads=threads)
+    _, ray_ok = camera.rays()
+    origins, dirs = _world_rays(camera, T_world_camera)
+    t_hit, tri = cast_rays(grid, origins, dirs, t_max=500.0, threads=threads)
     rgb = np.empty((dirs.shape[0], 3), dtype=np.float32)
     gain = float(camera.exposure * exposure_scale)
 
     def work(a: int, b: int) -> None:
         shade_kernel(
-            t,
+            origins[a:b],
             dirs[a:b],
             ray_ok[a:b],
             t_hit[a:b],
@@ -198,10 +229,13 @@ def _gaussian_lut(sigma: float) -> NDArray[np.float32]:
 def render_depth(
     grid: TriangleGrid, camera: SimCamera, T_world_camera: NDArray[np.float64], threads: int | None = None
 ) -> NDArray[np.float32]:
-    """(H, W) float32 z-depth (m, along the optical axis) of the first surface per pixel; NaN where none."""
+    """(H, W) float32 z-depth (m, along the optical axis) of the first surface per pixel; NaN where none.
+
+    ``T_world_camera``: as in ``render``, (4, 4) or one pose per image row (H, 4, 4); each row's depth is
+    along the optical axis of its own pose.
+    """
     rays_cam, ray_ok = camera.rays()
-    R, t = T_world_camera[:3, :3], T_world_camera[:3, 3]
-    dirs = np.ascontiguousarray(np.einsum("ij,kj->ik", rays_cam, R))
-    t_hit, tri = cast_rays(grid, np.broadcast_to(t, dirs.shape), dirs, t_max=500.0, threads=threads)
+    origins, dirs = _world_rays(camera, T_world_camera)
+    t_hit, tri = cast_rays(grid, origins, dirs, t_max=500.0, threads=threads)
     depth = np.where((tri >= 0) & ray_ok, t_hit * rays_cam[:, 2], np.nan)
     return depth.reshape(camera.model.height, camera.model.width).astype(np.float32)

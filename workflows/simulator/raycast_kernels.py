@@ -268,7 +268,7 @@ def surface_kernel(
 
 @njit(**NJIT_PARALLEL_FLAGS, error_model="numpy")
 def shade_kernel(
-    origin: np.ndarray,
+    origins: np.ndarray,
     directions: np.ndarray,
     ray_ok: np.ndarray,
     t_hit: np.ndarray,
@@ -291,7 +291,8 @@ def shade_kernel(
     gamma: float,
     out_rgb: np.ndarray,
 ) -> None:
-    """8-bit-scale (0..255, float32) sRGB-like colour of each camera ray (N rays from one ``origin``).
+    """8-bit-scale (0..255, float32) sRGB-like colour of each camera ray (N rays, ray i from ``origins[i]``:
+    one camera position for a global shutter, one per image row for a rolling shutter).
 
     Hit: gain x ((1 - spectral_mix) albedo + spectral_mix reflectivity) x (0.45 + 0.55 max(0, n . sun)).
     Miss: a sky gradient by ray elevation. Rays with ``ray_ok`` False (outside a fisheye's circle) are
@@ -310,9 +311,9 @@ def shade_kernel(
             else:
                 t = t_hit[i]
                 r, g, b, refl = _surface_at(
-                    origin[0] + t * dx,
-                    origin[1] + t * dy,
-                    origin[2] + t * dz,
+                    origins[i, 0] + t * dx,
+                    origins[i, 1] + t * dy,
+                    origins[i, 2] + t * dz,
                     j,
                     tex_origin,
                     tex_u,

@@ -2,7 +2,9 @@
 
 The truth file has the schema of ``../shared/data/logs/*.truth.json`` (``lidar_topic``, ``lidar_frame``,
 ``pairs[]`` with ``camera_topic``, ``camera_frame``, ``T_camera_lidar`` (true), ``T_camera_lidar_in_log``
-(what the log's ``/tf_static`` gives)) plus ``trajectory`` (per lidar scan ``stamp_ns`` and ``T_map_lidar``,
+(what the log's ``/tf_static`` gives)) plus, per pair, the camera's clock ``time_offset_s`` (camera clock minus
+lidar clock, s) and ``readout_s`` (rolling-shutter time from the first to the last image row, s; 0: global
+shutter), plus ``trajectory`` (per lidar scan ``stamp_ns`` and ``T_map_lidar``,
 map = the first scan's lidar frame), ``scene``, ``seed`` and ``format``.
 """
 
@@ -118,8 +120,11 @@ def build_truth(
     fmt: str,
     extra: dict[str, Any] | None = None,
     rectified: bool = False,
+    time_offset_s: float = 0.0,
+    readout_s: float = 0.0,
 ) -> dict[str, Any]:
-    """The truth document (JSON-ready: lists, ints, floats)."""
+    """The truth document (JSON-ready: lists, ints, floats). ``time_offset_s`` (camera clock minus lidar
+    clock, s) and ``readout_s`` (rolling-shutter readout, s) are every camera's."""
     pairs = []
     for i, (T_true, T_log) in enumerate(zip(rig.T_camera_lidar, rig.T_camera_lidar_in_log, strict=True)):
         pairs.append(
@@ -128,6 +133,8 @@ def build_truth(
                 "camera_frame": camera_frame(i),
                 "T_camera_lidar": T_true.tolist(),
                 "T_camera_lidar_in_log": T_log.tolist(),
+                "time_offset_s": float(time_offset_s),
+                "readout_s": float(readout_s),
             }
         )
     doc: dict[str, Any] = {
@@ -156,11 +163,14 @@ def write_truth(path: str | os.PathLike[str], truth: dict[str, Any]) -> Path:
 
 
 def load_truth(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Read a truth file; 4x4 lists become float64 arrays."""
+    """Read a truth file; 4x4 lists become float64 arrays. A pair without ``time_offset_s`` or ``readout_s``
+    gets 0.0 s for it (synchronised clocks, global shutter)."""
     doc: dict[str, Any] = json.loads(Path(path).read_text())
     for pair in doc.get("pairs", []):
         for key in ("T_camera_lidar", "T_camera_lidar_in_log"):
             pair[key] = np.asarray(pair[key], dtype=np.float64)
+        for key in ("time_offset_s", "readout_s"):
+            pair[key] = float(pair.get(key, 0.0))
     for entry in doc.get("trajectory", []):
         entry["T_map_lidar"] = np.asarray(entry["T_map_lidar"], dtype=np.float64)
     return doc

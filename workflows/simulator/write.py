@@ -5,7 +5,9 @@ the stamp); frame ``lidar``; 10 Hz), ``/camera_N/image_raw`` (Image rgb8) or
 ``/camera_N/image_raw/compressed`` (CompressedImage jpeg), ``/camera_N/camera_info``, ``/tf`` (odometry
 ``odom -> base_link`` at 50 Hz and at every sensor stamp) and ``/tf_static`` (``base_link -> lidar`` and
 ``lidar -> camera_N_optical`` from the PERTURBED calibration). Sensor time starts at a fixed epoch and
-nothing depends on the wall clock, so the same options give byte-identical files.
+nothing depends on the wall clock, so the same options give byte-identical files. Cameras may run on a clock
+offset from the lidar's and read their rows out as a rolling shutter (``SimulationOptions.time_offset_ms``,
+``readout_ms``): an image is rendered from the vehicle poses at its rows' true (lidar-clock) times.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from fleetcal.workflows.simulator.camera import (
     pinhole_camera,
     rectified_stereo_camera,
     render,
+    row_times_s,
     wide_angle_camera,
 )
 from fleetcal.workflows.simulator.lidar import (
@@ -66,6 +69,8 @@ START_NS = 1_700_000_000_000_000_000
 TF_PERIOD_NS = 20_000_000
 PREFETCH_IMAGES = 2
 DEFAULT_SPEED_M_S = {"street": 8.0, "corridor": 1.5, "open": 5.0}
+MAX_TIME_OFFSET_MS = 1000.0
+MAX_READOUT_MS = 1000.0
 
 
 @dataclass(frozen=True)
@@ -84,6 +89,10 @@ class SimulationOptions:
     ``beams`` / ``columns`` 0 (default): the pattern's (``DEFAULT_LAYOUT``: 64 x 1024 spinning, 6 x 4000
     rosette), filled in on construction. ``odometry`` False: no ``/tf`` odometry is written (a raw sensor
     log; the truth file still has the trajectory).
+    ``time_offset_ms``: every camera's clock minus the lidar clock, ms (an image stamped t was exposed at lidar
+    time t - offset); ``readout_ms``: every camera's rolling-shutter readout, ms from the first image row to the
+    last (0: global shutter; the stamp is the first row's time). Only what the images show depends on them:
+    stamps, ``/tf`` odometry (lidar time) and scans do not.
     """
 
     fmt: LogFormat = "mcap"
@@ -111,6 +120,8 @@ class SimulationOptions:
     lidar: str = "spinning"
     lidar_roll_deg: float = 0.0
     odometry: bool = True
+    time_offset_ms: float = 0.0
+    readout_ms: float = 0.0
 
     def __post_init__(self) -> None:
         beams, columns = DEFAULT_LAYOUT.get(self.lidar, (0, 0))
@@ -171,6 +182,15 @@ class SimulationOptions:
                 0.5 <= self.camera_rate_hz <= 100 and 1 <= self.lidar_rate_hz <= 50,
                 "sensor rates out of range",
             ),
+            (
+                np.isfinite(self.time_offset_ms) and abs(self.time_offset_ms) <= MAX_TIME_OFFSET_MS,
+                f"time-offset-ms must be in -{MAX_TIME_OFFSET_MS:g}..{MAX_TIME_OFFSET_MS:g} ms, "
+                f"got {self.time_offset_ms}",
+            ),
+            (
+                np.isfinite(self.readout_ms) and 0 <= self.readout_ms <= MAX_READOUT_MS,
+                f"readout-ms must be in 0..{MAX_READOUT_MS:g} ms, got {self.readout_ms}",
+            ),
         ]
         for ok, message in checks:
             if not ok:
@@ -179,6 +199,16 @@ class SimulationOptions:
     @property
     def speed(self) -> float:
         return DEFAULT_SPEED_M_S[self.scene] if self.speed_m_s is None else float(self.speed_m_s)
+
+    @property
+    def time_offset_s(self) -> float:
+        """Camera clock minus lidar clock, s."""
+        return float(self.time_offset_ms) / 1e3
+
+    @property
+    def readout_s(self) -> float:
+        """Rolling-shutter readout from the first to the last image row, s (0: global shutter)."""
+        return float(self.readout_ms) / 1e3
 
 
 @dataclass
@@ -216,6 +246,17 @@ def _event_times(opts: SimulationOptions) -> tuple[list[int], list[list[int]], l
         first = START_NS + round(phase * 1e6)
         images.append(list(range(first, end, cam_period)))
     return scans, images, phases_ms
+
+
+def camera_pose(
+    motion: LoopMotion, T_base_camera: NDArray[np.float64], first_row_s: float, readout_s: float, height: int
+) -> NDArray[np.float64]:
+    """World pose of a camera's optical frame while it exposes an image whose first row is exposed at
+    ``first_row_s`` (s since the start, lidar clock): (4, 4) for a global shutter (``readout_s`` 0), else
+    (H, 4, 4) one pose per image row at its own time (``row_times_s``)."""
+    if readout_s == 0:
+        return motion.T_world_base(first_row_s) @ T_base_camera
+    return motion.T_world_base_many(row_times_s(first_row_s, readout_s, height)) @ T_base_camera
 
 
 def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet: bool = True) -> SimulationResult:
@@ -277,10 +318,10 @@ def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet:
         return simulate_scan(scene, grid, lidar, T, rng, scan_start_s=t_s(scans[k]))
 
     def render_job(index: int, sub: int) -> NDArray[np.uint8]:
-        stamp = images[index][sub]
-        T_world_cam = motion.T_world_base(t_s(stamp)) @ rig.T_base_cameras[index]
+        exposed_s = t_s(images[index][sub]) - opts.time_offset_s
+        T_world_cam = camera_pose(motion, rig.T_base_cameras[index], exposed_s, opts.readout_s, opts.height)
         rng = np.random.default_rng(np.random.SeedSequence([opts.seed, 0xC0, index, sub]))
-        exposure = 1.0 + 0.05 * np.sin(0.7 * t_s(stamp) + index)
+        exposure = 1.0 + 0.05 * np.sin(0.7 * exposed_s + index)
         return render(scene, grid, cameras[index], T_world_cam, rng, exposure_scale=exposure)
 
     # camera images are rendered one or two events ahead on a helper thread (the kernels release the GIL),
@@ -406,6 +447,8 @@ def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet:
         seed=opts.seed,
         fmt=opts.fmt,
         extra=extra,
+        time_offset_s=opts.time_offset_s,
+        readout_s=opts.readout_s,
     )
     truth_path = write_truth(truth_path_for(out_path), truth)
     duration_s = (scans[-1] - START_NS) / 1e9
