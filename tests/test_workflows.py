@@ -38,7 +38,7 @@ CALIBRATION_COLUMNS = {
     "std_rx_deg": pa.float64(), "std_ry_deg": pa.float64(), "std_rz_deg": pa.float64(),
     "std_tx_m": pa.float64(), "std_ty_m": pa.float64(), "std_tz_m": pa.float64(), "initialisation": pa.string(),
     "time_offset_s": pa.float64(), "time_offset_std_s": pa.float64(), "readout_s": pa.float64(),
-    "motion_source": pa.string(),
+    "readout_std_s": pa.float64(), "motion_source": pa.string(),
 }  # fmt: skip
 TRAJECTORY_COLUMNS = {
     "stamp_ns": pa.int64(), "tx_m": pa.float64(), "ty_m": pa.float64(), "tz_m": pa.float64(),
@@ -197,6 +197,24 @@ def test_calibrate_with_the_translation_held_says_so_and_keeps_the_camera_centre
     T_in_log = np.asarray(truth["T_camera_lidar_in_log"])
     np.testing.assert_allclose(invert(T_est)[:3, 3], invert(T_in_log)[:3, 3], atol=1e-6)
     assert rotation_error_deg(T_est, T_in_log) > 0.1  # the rotation was estimated
+
+
+def test_clock_offset_of_a_straight_steady_drive_is_reported_unobservable(
+        sim_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The simulated street's first scans run straight at a steady 8 m/s: every frame moves alike, so a clock
+    offset is a translation along the drive and nothing in the log tells it apart; the result says so rather
+    than give a number, and the translation's deviation grows by the offset range times the speed."""
+    out = tmp_path / "clock"
+    code = main(["calibrate", str(sim_log), "--config", str(sim_log.parent / "small.toml"), "--out", str(out),
+                 "--json", "-q", "--no-report", "--time-offset", "estimate"])  # fmt: skip
+    assert code == 0
+    pair = json.loads(capsys.readouterr().out)["pairs"][0]
+    assert pair["time_offset_s"] == pair["time_offset_std_s"] == "unobservable"
+    assert pair["readout_s"] == 0.0 and pair["readout_std_s"] is None and pair["motion_source"] == "tf"
+    row = pq.read_table(out / "calibration.parquet").to_pylist()[0]
+    assert np.isnan(row["time_offset_s"]) and np.isinf(row["time_offset_std_s"])
+    assert row["std_tz_m"] > 0.05 * 8.0 / np.sqrt(3) * 0.9  # +-50 ms at 8 m/s along the optical axis
+    assert pair["verdict"] == "suspect"
 
 
 @pytest.mark.parametrize(
