@@ -253,6 +253,17 @@ class TransformTree:
             T = step @ T
         return T
 
+    def recorded_span(self, target: str, source: str) -> tuple[int, int] | None:
+        """(first, last) stamps, ns, between which every moving edge from ``source`` to ``target`` was recorded
+        (lookups there interpolate); None where the path has no moving edge or the spans do not overlap."""
+        spans = [(e.stamps_ns[0], e.stamps_ns[-1]) for e in
+                 (self._edges[key] for key, _ in self._path(target.lstrip("/"), source.lstrip("/")))
+                 if e.static is None and e.stamps_ns]
+        if not spans:
+            return None
+        first, last = max(a for a, _ in spans), min(b for _, b in spans)
+        return (first, last) if first <= last else None
+
     def can_lookup(self, target: str, source: str) -> bool:
         try:
             self._path(target.lstrip("/"), source.lstrip("/"))

@@ -14,6 +14,7 @@ from fleetcal.readers.frames import load_tf_tree
 from fleetcal.readers.open import open_log
 from fleetcal.stages.calibration.frame import CalibrationFrame, compensate_ego_motion
 from fleetcal.workflows.calibrate import collect_frames
+from fleetcal.workflows.ego_motion import camera_twist
 from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log
 
 LIDAR, CAMERA = "/lidar/points", "/camera_0/image_raw"
@@ -75,3 +76,22 @@ def test_the_odometry_path_moves_whole_scans_by_their_stamp_when_point_times_are
         offsets = np.asarray(frame.point_time_offsets_s)
         assert offsets.min() == offsets.max() and -0.05 < offsets[0] < 0  # images 10-30 ms after the scan
 
+
+
+def test_the_twist_about_a_camera_stamp_is_the_sweeps_on_a_steady_drive(logs: tuple[Path, Path]) -> None:
+    """``ego_motion.camera_twist`` (what a clock offset or a rolling shutter moves points by) from the tf's
+    odometry about each image's stamp: on a straight steady 8 m/s drive, the sweep's own twist; None without
+    /tf odometry."""
+    with_tf, raw = logs
+    frames, _ = _frames(with_tf)
+    for path, expected in ((with_tf, [f.twist_lidar for f in frames]), (raw, [None] * len(frames))):
+        with open_log(path) as reader:
+            tree = load_tf_tree(reader)
+        for frame, twist in zip(frames, expected, strict=True):
+            found = camera_twist(tree, "lidar", frame.stamp_ns)
+            if twist is None:
+                assert found is None
+            else:
+                assert found is not None
+                np.testing.assert_allclose(found, twist, atol=1e-3)
+                assert np.linalg.norm(found[:3]) == pytest.approx(8.0, rel=1e-3)

@@ -109,6 +109,12 @@ def test_tree_interpolates_dynamic_edges() -> None:
     assert np.allclose(tree.lookup("odom", "base", 2_005_000_000)[:3, 3], [2, 0, 0])
     with pytest.raises(TransformError, match="no transform within"):
         tree.lookup("odom", "base", 3_000_000_000)
+    tree.add("base", "lidar", np.eye(4), 0, static=True)
+    tree.add("base", "arm", np.eye(4), 1_200_000_000, static=False)
+    tree.add("base", "arm", np.eye(4), 2_500_000_000, static=False)
+    assert tree.recorded_span("odom", "lidar") == (1_000_000_000, 2_000_000_000)
+    assert tree.recorded_span("odom", "arm") == (1_200_000_000, 2_000_000_000)  # where both edges were recorded
+    assert tree.recorded_span("base", "lidar") is None  # static only
 
 
 def test_tree_missing_path_and_bad_edges() -> None:

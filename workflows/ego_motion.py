@@ -63,9 +63,19 @@ def sweep_motion(
 def camera_twist(tree: TransformTree | None, lidar_frame: str, camera_ns: int,
                  half_window_ns: int = 25_000_000) -> NDArray[np.float64] | None:
     """The lidar's twist (6,) about ``camera_ns``: velocity (m/s) and angular rate (rad/s) in the lidar frame,
-    from the tf tree's odometry over +-``half_window_ns``; None without it."""
-    T_before_after = scan_motion(tree, lidar_frame, camera_ns + half_window_ns, camera_ns - half_window_ns)
-    return None if T_before_after is None else twist_of(T_before_after, 2 * half_window_ns * 1e-9)
+    from the tf tree's odometry over +-``half_window_ns``, cut to where the odometry was recorded; None without
+    odometry over at least a millisecond there."""
+    if tree is None or not has_odometry(tree, lidar_frame):
+        return None
+    world = root_of(tree, lidar_frame)
+    span = tree.recorded_span(world, lidar_frame)
+    if span is None:
+        return None
+    before, after = max(camera_ns - half_window_ns, span[0]), min(camera_ns + half_window_ns, span[1])
+    if after - before < 1_000_000:
+        return None
+    T_before_after = invert(tree.lookup(world, lidar_frame, before)) @ tree.lookup(world, lidar_frame, after)
+    return twist_of(T_before_after, (after - before) * 1e-9)
 
 
 def _point_times(lidar: LidarFrame) -> tuple[NDArray[np.float64], PointTimes] | None:
