@@ -215,7 +215,7 @@ def estimate_timing(field: TimeShiftField, x: NDArray[np.float64], known: TimeSh
     """Alternate profiles of the offset (``offset``: over +-``range_s``) and the readout (``readout``: over
     0..2 ``range_s``) at the extrinsic x (D,), starting from ``known``, with ``refine``-ing the extrinsic under
     what they found (``refine(x) -> (x, score)``), until neither moves by more than half a grid step (at most
-    ``max_rounds``); then profile the offset again on a grid four times finer about its value, which gives the
+    ``max_rounds``); then profile each again on a grid four times finer about its value, which gives the
     reported value and deviation. A profile whose ends score as well as its best leaves its parameter at
     ``known``'s value with an infinite deviation."""
     shift = known
@@ -240,14 +240,20 @@ def estimate_timing(field: TimeShiftField, x: NDArray[np.float64], known: TimeSh
         moved = abs(shift.offset_s - before.offset_s) + abs((shift.readout_s or 0.0) - (before.readout_s or 0.0))
         if moved < step / 2 or not (np.isfinite(offset_std) or np.isfinite(readout_std)):
             break
+    fractions = field.row_fractions(x)
     if offset and np.isfinite(offset_std):
         values = np.asarray(shift.offset_s + step / 4.0 * np.arange(-8, 9), dtype=np.float64)
-        fractions = field.row_fractions(x)
         found = profile(field, x, fractions, [TimeShift(v, shift.readout_s) for v in values], values)
         offset_std = found.std_s if found.observable else offset_std  # else the fine grid is too short
         shift = replace(shift, offset_s=found.value_s)
-        field.apply(shift, fractions)
-        score = float(field.problem.evaluate(x[None])[0])
+    if readout and np.isfinite(readout_std) and shift.readout_s is not None:
+        values = np.asarray(shift.readout_s + step / 4.0 * np.arange(-8, 9), dtype=np.float64)
+        values = values[values >= 0.0]
+        found = profile(field, x, fractions, [TimeShift(shift.offset_s, v) for v in values], values)
+        readout_std = found.std_s if found.observable else readout_std
+        shift = replace(shift, readout_s=found.value_s)
+    field.apply(shift, fractions)
+    score = float(field.problem.evaluate(x[None])[0])
     return TimingEstimate(shift, offset_std, readout_std, x, score)
 
 
