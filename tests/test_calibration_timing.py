@@ -102,16 +102,16 @@ def test_field_moves_points_as_the_screw_motion_does_to_first_order(scenes: list
     field.apply(shift, fractions)
     mean_row = field.mean_fraction(fractions)
     m = 0.01 - 0.02 * mean_row
-    mean_twist = np.mean(TWISTS[:2], axis=0)
+    shared_twist = np.median(TWISTS[:2], axis=0)
     for k, tw in enumerate(TWISTS[:2]):
         p = field.base_points[0][k][0]
         tau = m - 0.02 * (fractions[0][k][0] - mean_row)
         # full motion by tau, less the mean motion by m: screw motions to first order (h small)
         h = 1e-4
         full = (screw_apply(tw, np.full(p.shape[0], h), p) - p) / h * tau[:, None]
-        mean = (screw_apply(mean_twist, np.full(p.shape[0], h), p) - p) / h * m
+        mean = (screw_apply(shared_twist, np.full(p.shape[0], h), p) - p) / h * m
         np.testing.assert_allclose(problem.scorers[k][0].points, p + full - mean, atol=1e-5)
     C = field.extrinsic_correction(shift, fractions)
     p = field.base_points[0][0][0][:50]
-    moved_by_mean = screw_apply(mean_twist, np.full(p.shape[0], m), p)
+    moved_by_mean = screw_apply(shared_twist, np.full(p.shape[0], m), p)
     np.testing.assert_allclose(apply(C, moved_by_mean), p, atol=1e-3)
