@@ -4,17 +4,21 @@ scan with the scan next to it, about as the log's tf would move them."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from fleetcal.pipeline.config import Config
+from fleetcal.readers.decode import decode_pointcloud2
 from fleetcal.readers.frames import load_tf_tree
 from fleetcal.readers.open import open_log
 from fleetcal.stages.calibration.frame import CalibrationFrame, compensate_ego_motion
+from fleetcal.workflows import mapping
 from fleetcal.workflows.calibrate import collect_frames
 from fleetcal.workflows.ego_motion import camera_twist
+from fleetcal.workflows.process import ColorSource, colorize_scan
 from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log
 
 LIDAR, CAMERA = "/lidar/points", "/camera_0/image_raw"
@@ -95,3 +99,29 @@ def test_the_twist_about_a_camera_stamp_is_the_sweeps_on_a_steady_drive(logs: tu
                 assert found is not None
                 np.testing.assert_allclose(found, twist, atol=1e-3)
                 assert np.linalg.norm(found[:3]) == pytest.approx(8.0, rel=1e-3)
+
+
+def test_process_colours_a_log_without_tf_odometry_as_the_tf_would(logs: tuple[Path, Path]) -> None:
+    """``process`` colouring (``colorize_scan``) of a scan from the log without /tf odometry: the points are
+    moved to the image's stamp by fleetcal's own odometry, so their colours are those the log with /tf gives,
+    and not those of the points left where the scan saw them."""
+    with_tf, raw = logs
+    truth = json.loads(with_tf.with_name(with_tf.stem + ".truth.json").read_text())["pairs"][0]
+    T_rows = tuple(map(tuple, np.asarray(truth["T_camera_lidar"]).tolist()))
+    config = Config()
+
+    def colours(path: Path, ego_motion: bool) -> np.ndarray:
+        source = ColorSource((str(path),), ((CAMERA, T_rows),), config.io.pairing_tolerance_ns,
+                             ego_motion=ego_motion, lidar_topic=LIDAR,
+                             ego_registration=mapping.ego_motion_registration(config))
+        with open_log(path) as reader:
+            raw_scan = list(reader.messages(topics=[LIDAR]))[3]
+            frame = decode_pointcloud2(reader.deserialize(raw_scan), LIDAR, raw_scan.log_time_ns)
+        coloured = colorize_scan(frame, source)
+        return np.column_stack([coloured.channel(c) for c in "rgb"])
+
+    by_tf, by_odometry, unmoved = colours(with_tf, True), colours(raw, True), colours(raw, False)
+    differs = lambda a, b: float(np.mean(np.abs(a - b).max(axis=1) > 30))  # noqa: E731
+    assert differs(unmoved, by_tf) > 0.01  # 8 m/s over the 10-30 ms to the image: colours off at edges
+    assert differs(by_odometry, by_tf) < 0.5 * differs(unmoved, by_tf), (differs(by_odometry, by_tf),
+                                                                          differs(unmoved, by_tf))

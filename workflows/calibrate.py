@@ -47,8 +47,6 @@ from fleetcal.stages.calibration.frame import (
     join_frame,
     lidar_feature_stage,
 )
-from fleetcal.stages.registration.deskew import sweep_twist
-from fleetcal.stages.registration.gicp import register
 from fleetcal.stages.sinks import report
 from fleetcal.stages.sinks.tables import CALIBRATION_SCHEMA, FRAMES_SCHEMA, STD_COLUMNS, write_rows
 from fleetcal.workflows import mapping
@@ -304,7 +302,7 @@ def _odometry_twists(engine: Engine, source: LogFrames, lidar_topic: str, chosen
     if has_odometry(tree, scan.lidar.frame_id.lstrip("/")):
         return {}
     wanted = [p for p in chosen if p.neighbour_log_ns >= 0 and isinstance(scans.get(p.lidar_stamp_ns), LidarFeatures)]
-    reg = replace(mapping.registration_config(config), method="gicp", channels="none")
+    reg = mapping.ego_motion_registration(config)
     times = sorted({p.lidar_log_ns for p in wanted} | {p.neighbour_log_ns for p in wanted})
     sets = {ps.stamp_ns: ps for ps in engine.map_frames(source, lidar_topic, partial(mapping.prepare_scan, config=reg),
                                                          desc="calibration odometry", log_times_ns=times)}
@@ -314,9 +312,8 @@ def _odometry_twists(engine: Engine, source: LogFrames, lidar_topic: str, chosen
         if here is None or there is None:
             continue
         early, late = (there, here) if pair.neighbour_stamp_ns < pair.lidar_stamp_ns else (here, there)
-        result = register(late, early, config=reg)
-        twist = sweep_twist(result.T_target_source, (late.stamp_ns - early.stamp_ns) * 1e-9)
-        if result.converged and twist is not None:
+        twist = mapping.scan_twist(early, late, reg)
+        if twist is not None:
             twists[pair.lidar_stamp_ns] = twist
         else:
             log.warning("no odometry for the scan at %d: its registration with the scan at %d failed",

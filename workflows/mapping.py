@@ -7,6 +7,7 @@ arrive. In-process, the preparation runs on a background thread one or two scans
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import itertools
 import logging
@@ -28,6 +29,8 @@ from fleetcal.pipeline.transforms import TransformTree, root_of, to_quat, transl
 from fleetcal.readers.base import LogReader
 from fleetcal.readers.frames import load_tf_tree
 from fleetcal.stages.registration.config import RegistrationConfig
+from fleetcal.stages.registration.deskew import sweep_twist
+from fleetcal.stages.registration.gicp import register
 from fleetcal.stages.registration.odometry import OdometryStep, VoxelMap, run_odometry
 from fleetcal.stages.registration.pointset import PointSet, pointset_from_frame
 from fleetcal.stages.sinks import report
@@ -153,6 +156,21 @@ def prepare_scan(frame: LidarFrame, config: RegistrationConfig) -> PointSet:
             f"scan at {frame.stamp_ns} has no {', '.join(missing)} channel for --channels {config.channels}"
         )
     return pointset_from_frame(frame, config)
+
+
+def ego_motion_registration(config: Config) -> RegistrationConfig:
+    """The registration that gives a scan's ego-motion where the log has no odometry: plain GICP with the
+    ``[mapping]`` settings."""
+    return dataclasses.replace(registration_config(config), method="gicp", channels="none")
+
+
+def scan_twist(early: PointSet, late: PointSet, config: RegistrationConfig) -> NDArray[np.float64] | None:
+    """The lidar's twist (6,: m/s, rad/s, lidar frame) between two prepared scans of one lidar: the later
+    registered onto the earlier, over their stamps' interval (``deskew.sweep_twist``); None where the
+    registration does not converge."""
+    result = register(late, early, config=config)
+    twist = sweep_twist(result.T_target_source, (late.stamp_ns - early.stamp_ns) * 1e-9)
+    return twist if result.converged and twist is not None else None
 
 
 def tf_odometry(tree: TransformTree | None, lidar_frame: str) -> Callable[[int], NDArray[np.float64] | None] | None:

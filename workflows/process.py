@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+from numpy.typing import NDArray
 
 from fleetcal.pipeline.camera_model import with_model
 from fleetcal.pipeline.config import Config, write_toml
@@ -23,15 +24,18 @@ from fleetcal.pipeline.engine import Engine
 from fleetcal.pipeline.errors import InputError
 from fleetcal.pipeline.frames import LidarFrame
 from fleetcal.pipeline.transforms import TransformTree, apply
+from fleetcal.readers.decode import decode_pointcloud2
 from fleetcal.readers.frames import CameraInfoTracker, decode_camera_image, load_tf_tree
 from fleetcal.readers.open import open_log
+from fleetcal.stages.calibration.frame import compensate_ego_motion
 from fleetcal.stages.colorize import colorize, fill_unseen
+from fleetcal.stages.registration.config import RegistrationConfig
 from fleetcal.stages.registration.pointset import PointSet
 from fleetcal.stages.sinks.atomic import atomic_path
 from fleetcal.stages.sinks.report import jpeg_overlay
 from fleetcal.workflows import calibrate as calib
 from fleetcal.workflows import mapping
-from fleetcal.workflows.ego_motion import points_at
+from fleetcal.workflows.ego_motion import has_odometry, points_at, twist_motion
 from fleetcal.workflows.frame_sources import STAGE_WARMUPS
 from fleetcal.workflows.pairing import raw_header_stamp_ns
 from fleetcal.workflows.sensors import resolve_cameras, resolve_lidar
@@ -97,6 +101,9 @@ class ColorSource:
     rectified_topics: tuple[str, ...] = ()
     ego_motion: bool = True
     point_times: bool = True
+    lidar_topic: str = ""
+    ego_registration: RegistrationConfig | None = None  # GICP for the lidar's twist where /tf has no odometry
+    max_range_m: float | None = None
 
 
 @functools.lru_cache(maxsize=4)
@@ -137,17 +144,25 @@ def _worker_tree(paths: tuple[str, ...], allow_truncated: bool) -> TransformTree
 
 def colorize_scan(frame: LidarFrame, source: ColorSource) -> LidarFrame:
     """Per-frame stage: r, g, b channels from the calibrated cameras; points no camera sees get the
-    mean colour of the seen ones (so they add no colour gradient in MC-GICP). With odometry on ``/tf``
-    (``source.ego_motion``) each image sees the points moved to its own stamp (``ego_motion.points_at``)."""
+    mean colour of the seen ones (so they add no colour gradient in MC-GICP). With ``source.ego_motion`` each
+    image sees the points moved to its own stamp: by the odometry on ``/tf`` (``ego_motion.points_at``), or
+    where the log has none by fleetcal's own, the scan registered with its neighbour (``_odometry_twist``)."""
     reader = _worker_reader(source.paths, source.allow_truncated)
     tree = _worker_tree(source.paths, source.allow_truncated) if source.ego_motion else None
+    twist = None
+    if source.ego_motion and not has_odometry(tree, frame.frame_id.lstrip("/")):
+        twist = _odometry_twist(reader, frame, source)
     views, moved = [], []
     for topic, T_rows in source.cameras:
         image = _nearest_image(reader, topic, frame.stamp_ns, source.tolerance_ns, source.rectified_topics)
         camera = None if image is None else with_model(image.camera, source.camera_model)
         if image is not None and camera is not None:
             views.append((image.image, camera, np.array(T_rows)))
-            moved.append(points_at(tree, frame, image.stamp_ns, source.point_times))
+            if twist is None:
+                moved.append(points_at(tree, frame, image.stamp_ns, source.point_times))
+            else:
+                offsets, _ = twist_motion(frame, image.stamp_ns, twist, source.point_times)
+                moved.append(compensate_ego_motion(frame.points_xyz, None, offsets, twist))
     points = np.asarray(frame.points_xyz, dtype=np.float64)
     if views:
         rgb, seen = colorize(points, views, points_per_view=moved)
@@ -158,6 +173,35 @@ def colorize_scan(frame: LidarFrame, source: ColorSource) -> LidarFrame:
     channels.update(r=rgb[:, 0], g=rgb[:, 1], b=rgb[:, 2])
     frame.channels = channels
     return frame
+
+
+def _odometry_twist(reader: Any, frame: LidarFrame, source: ColorSource) -> NDArray[np.float64] | None:
+    """The lidar's twist at ``frame`` from fleetcal's own odometry (``mapping.scan_twist``): the scan registered
+    with the next one on its topic (the one before, for the last); None without a neighbour, a registration
+    config or a converged registration."""
+    if source.ego_registration is None or not source.lidar_topic:
+        return None
+    neighbour = _neighbour_scan(reader, source.lidar_topic, frame, source.max_range_m)
+    if neighbour is None:
+        return None
+    here = mapping.prepare_scan(frame, source.ego_registration)
+    there = mapping.prepare_scan(neighbour, source.ego_registration)
+    early, late = (here, there) if here.stamp_ns < there.stamp_ns else (there, here)
+    return None if early.stamp_ns == late.stamp_ns else mapping.scan_twist(early, late, source.ego_registration)
+
+
+def _neighbour_scan(reader: Any, topic: str, frame: LidarFrame, max_range_m: float | None) -> LidarFrame | None:
+    """The decoded scan after ``frame`` on ``topic`` by log time (within a second), else the one before."""
+    after = reader.messages(topics=[topic], start_ns=frame.log_time_ns + 1, end_ns=frame.log_time_ns + 1_000_000_000)
+    raw = next(iter(after), None)
+    if raw is None:
+        before = list(reader.messages(topics=[topic], start_ns=frame.log_time_ns - 1_000_000_000,
+                                      end_ns=frame.log_time_ns))
+        raw = before[-1] if before else None
+    if raw is None:
+        return None
+    extra = () if max_range_m is None else (max_range_m,)
+    return decode_pointcloud2(reader.deserialize(raw), topic, raw.log_time_ns, *extra)
 
 
 def prepare_colored_scan(frame: LidarFrame, source: ColorSource | None, config: Any) -> PointSet:
@@ -213,7 +257,8 @@ def process_log(
                 tuple(paths), tuple((p.camera_topic, tuple(map(tuple, p.T_camera_lidar.tolist()))) for p in pairs),
                 config.io.pairing_tolerance_ns, config.io.allow_truncated, config.calibration.camera_model,
                 tuple(config.io.rectified_topics), config.calibration.motion_compensation,
-                config.calibration.point_times,
+                config.calibration.point_times, lidar_topic, mapping.ego_motion_registration(config),
+                config.io.max_range_m,
             )  # fmt: skip
             first = next(iter(reader.messages(topics=[lidar_topic])), None)
             has_intensity = first is not None and any(
