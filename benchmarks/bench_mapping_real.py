@@ -13,6 +13,8 @@ and the same thread count:
   constant-velocity guess, the same voxel size as fleetcal (0.25 m).
 
 Columns: ``s/scan`` steady state (mean over the scans after the first 5, scans already decoded),
+``cpu s`` the CPU time of the whole process per scan over the same scans (all its threads: on a machine
+whose cores are busy with other work, wall time follows it rather than ``s/scan`` of an idle machine),
 ``amort`` amortised (process wall time / scans: interpreter, imports, decoding, start-up included),
 ``start s`` everything that is not per scan (amortised total minus scans x steady state: interpreter,
 imports, decoding the log, writing outputs), ``import s`` importing the method and running it once on
@@ -54,6 +56,7 @@ class Run:
     steady_s: float
     amortised_s: float
     import_s: float
+    cpu_s: float = float("nan")
 
 
 def load_scans(log: Path) -> tuple[list[Any], str]:
@@ -66,26 +69,32 @@ def load_scans(log: Path) -> tuple[list[Any], str]:
         return list(iter_lidar_frames(reader, truth["lidar_topic"])), truth["lidar_topic"]
 
 
-def _timed(items: list[Any], marks: list[float]) -> Any:
-    """Yield the items, recording the time each one is asked for (the gaps are the per-scan times)."""
+def _timed(items: list[Any], marks: list[tuple[float, float]]) -> Any:
+    """Yield the items, recording the (wall, process CPU) time each one is asked for (the gaps are the
+    per-scan times)."""
     for item in items:
-        marks.append(time.perf_counter())
+        marks.append((time.perf_counter(), time.process_time()))
         yield item
-    marks.append(time.perf_counter())
+    marks.append((time.perf_counter(), time.process_time()))
 
 
-def run_fleetcal_inprocess(frames: list[Any], channels: str) -> tuple[list[NDArray[np.float64]], list[float]]:
+def _gaps(marks: list[tuple[float, float]]) -> NDArray[np.float64]:
+    """(n, 2) wall and CPU seconds between successive marks."""
+    return np.diff(np.asarray(marks), axis=0)
+
+
+def run_fleetcal_inprocess(frames: list[Any], channels: str) -> tuple[list[NDArray[np.float64]], NDArray[np.float64]]:
     from fleetcal.pipeline.config import Config
     from fleetcal.workflows.mapping import map_frames
 
     config = Config()
     config.mapping.channels = channels  # type: ignore[assignment]
-    marks: list[float] = []
+    marks: list[tuple[float, float]] = []
     steps, _, _ = map_frames(_timed(frames, marks), config)
-    return [s.T_map_lidar for s in steps], list(np.diff(marks))
+    return [s.T_map_lidar for s in steps], _gaps(marks)
 
 
-def run_kiss(frames: list[Any], threads: int) -> tuple[list[NDArray[np.float64]], list[float]]:
+def run_kiss(frames: list[Any], threads: int) -> tuple[list[NDArray[np.float64]], NDArray[np.float64]]:
     from kiss_icp.config import load_config
     from kiss_icp.kiss_icp import KissICP
 
@@ -93,19 +102,23 @@ def run_kiss(frames: list[Any], threads: int) -> tuple[list[NDArray[np.float64]]
     config.data.deskew = False
     config.registration.max_num_threads = threads
     odometry = KissICP(config)
-    poses, marks = [], []
+    poses: list[NDArray[np.float64]] = []
+    marks: list[tuple[float, float]] = []
     for frame in _timed(frames, marks):
         odometry.register_frame(np.asarray(frame.points_xyz, dtype=np.float64), np.zeros(0))
         poses.append(np.array(odometry.last_pose))
-    return poses, list(np.diff(marks))
+    return poses, _gaps(marks)
 
 
-def run_small_gicp(frames: list[Any], threads: int, voxel_m: float) -> tuple[list[NDArray[np.float64]], list[float]]:
+def run_small_gicp(
+    frames: list[Any], threads: int, voxel_m: float
+) -> tuple[list[NDArray[np.float64]], NDArray[np.float64]]:
     import small_gicp
 
     T_map_lidar, velocity = np.eye(4), np.eye(4)
     target = tree = None
-    poses, marks = [], []
+    poses: list[NDArray[np.float64]] = []
+    marks: list[tuple[float, float]] = []
     for frame in _timed(frames, marks):
         source, source_tree = small_gicp.preprocess_points(
             np.asarray(frame.points_xyz, dtype=np.float64), voxel_m, num_neighbors=20, num_threads=threads
@@ -117,7 +130,7 @@ def run_small_gicp(frames: list[Any], threads: int, voxel_m: float) -> tuple[lis
             T_map_lidar = T_map_lidar @ velocity
         poses.append(T_map_lidar.copy())
         target, tree = source, source_tree
-    return poses, list(np.diff(marks))
+    return poses, _gaps(marks)
 
 
 def warm_start(method: str, threads: int) -> float:
@@ -148,7 +161,7 @@ def warm_start(method: str, threads: int) -> float:
 
 
 def worker(method: str, log: Path, threads: int, voxel_m: float, out: Path) -> None:
-    """Run one method in this process; write poses, per-scan times and start-up to ``out`` (npz)."""
+    """Run one method in this process; write poses, per-scan (wall, CPU) times and start-up to ``out`` (npz)."""
     startup = warm_start(method, threads)
     frames, _ = load_scans(log)
     if method.startswith("fleetcal"):
@@ -186,14 +199,15 @@ def run_method(method: str, log: Path, threads: int, voxel_m: float, work: Path)
     worker_args = ["--worker", method, "--log", str(log), "--threads", str(threads), "--voxel", str(voxel_m)]
     wall = _subprocess([*me, *worker_args, "--out", str(out)], threads)
     data = np.load(out)
-    poses, times = data["poses"], data["times"]
+    poses, times, cpu = data["poses"], data["times"][:, 0], data["times"][:, 1]
     if method.startswith("fleetcal"):
         out_dir = work / method.replace(" ", "_")
         fleetcal = str(Path(sys.executable).with_name("fleetcal"))
         wall = _subprocess([fleetcal, "map", str(log), "--channels", method.split()[1], "--out", str(out_dir),
                             "--quiet", "--json"], threads)  # fmt: skip
         poses = _trajectory(out_dir / "trajectory.parquet")
-    return Run(method, poses, float(np.mean(times[WARM_SCANS:])), wall / len(times), float(data["startup"]))
+    return Run(method, poses, float(np.mean(times[WARM_SCANS:])), wall / len(times), float(data["startup"]),
+               float(np.mean(cpu[WARM_SCANS:])))  # fmt: skip
 
 
 def _trajectory(path: Path) -> NDArray[np.float64]:
@@ -315,14 +329,16 @@ def main(argv: list[str] | None = None) -> int:
     kiss = next((r for r in runs if r.method == "KISS-ICP"), None)
     print(f"{args.log.name}: {true.shape[0]} scans, path {accuracy(true, true)['path_m']:.1f} m, "
           f"threads {args.threads}, {os.cpu_count()} cores")  # fmt: skip
-    print(f"{'method':<20} {'s/scan':>7} {'x KISS':>6} {'amort':>7} {'x KISS':>6} {'start s':>7} "
-          f"{'import s':>8} {'drift %':>7} {'rel cm':>6} {'rel deg':>7} {'ATE cm':>6}")  # fmt: skip
+    print(f"{'method':<20} {'s/scan':>7} {'x KISS':>6} {'cpu s':>6} {'x KISS':>6} {'amort':>7} {'x KISS':>6} "
+          f"{'start s':>7} {'import s':>8} {'drift %':>7} {'rel cm':>6} {'rel deg':>7} {'ATE cm':>6}")  # fmt: skip
     for r in runs:
         acc = accuracy(r.poses, true)
         start = (r.amortised_s - r.steady_s) * true.shape[0]
         ratio = f"{r.steady_s / kiss.steady_s:6.2f}" if kiss else "     -"
         ratio_a = f"{r.amortised_s / kiss.amortised_s:6.2f}" if kiss else "     -"
-        print(f"{r.method:<20} {r.steady_s:7.3f} {ratio} {r.amortised_s:7.3f} {ratio_a} {start:7.2f} {r.import_s:8.2f} "
+        ratio_c = f"{r.cpu_s / kiss.cpu_s:6.2f}" if kiss else "     -"
+        print(f"{r.method:<20} {r.steady_s:7.3f} {ratio} {r.cpu_s:6.3f} {ratio_c} {r.amortised_s:7.3f} {ratio_a} "
+              f"{start:7.2f} {r.import_s:8.2f} "
               f"{acc['drift_pct']:7.2f} {acc['rel_cm']:6.2f} {acc['rel_deg']:7.3f} {acc['ate_cm']:6.1f}")  # fmt: skip
     return 0
 

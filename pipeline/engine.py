@@ -40,7 +40,6 @@ __all__ = [
     "EngineStats",
     "FrameBatch",
     "FrameSource",
-    "NumbaWarmup",
     "SkipFn",
     "plan_batches",
     "plan_batches_at",
@@ -277,25 +276,6 @@ def _blank_reason(frame: LidarFrame | CameraFrame) -> str | None:
     return None
 
 
-try:
-    from distributed.diagnostics.plugin import WorkerPlugin as _WorkerPluginBase
-except ImportError:  # pragma: no cover - distributed is a hard dependency
-    _WorkerPluginBase = object  # type: ignore[assignment,misc]
-
-
-class NumbaWarmup(_WorkerPluginBase):  # type: ignore[misc,valid-type]
-    """Worker plugin: run the warm-up functions once when a worker starts (also after a restart)."""
-
-    name = "fleetcal-numba-warmup"
-
-    def __init__(self, warmups: Sequence[Callable[[], None]]) -> None:
-        self.warmups = tuple(warmups)
-
-    def setup(self, worker: Any) -> None:
-        for fn in self.warmups:
-            fn()
-
-
 class Engine:
     """Where per-frame stages run: in-process, a local dask cluster, or an existing one.
 
@@ -382,6 +362,8 @@ class Engine:
         n = self.workers if self.workers is not None else (os.cpu_count() or 1)
         self._client, self._cluster = dask_client(self.scheduler, n, self.memory_limit)
         if self.warmups:
+            from fleetcal.pipeline.worker_plugins import NumbaWarmup
+
             self._client.register_plugin(NumbaWarmup(self.warmups), name=NumbaWarmup.name)
 
     def close(self) -> None:

@@ -56,8 +56,8 @@ def _local_covariance(points: np.ndarray, nbrs: np.ndarray, out: np.ndarray) -> 
 
 
 @njit(**NJIT_FLAGS)
-def _eigvec_of(A: np.ndarray, lam: float, out: np.ndarray) -> float:
-    """Unit eigenvector of symmetric A (3, 3) for eigenvalue lam into out; returns the cross-product norm.
+def _eigvec_of(A: np.ndarray, lam: float) -> tuple[float, float, float]:
+    """Unit eigenvector of symmetric A (3, 3) for eigenvalue lam.
 
     The eigenvector is orthogonal to every row of A - lam I: take the largest cross product of two rows.
     """
@@ -79,14 +79,12 @@ def _eigvec_of(A: np.ndarray, lam: float, out: np.ndarray) -> float:
     n2 = c2x * c2x + c2y * c2y + c2z * c2z
     if n0 >= n1 and n0 >= n2:
         s = np.sqrt(n0)
-        out[0], out[1], out[2] = c0x / s, c0y / s, c0z / s
-    elif n1 >= n2:
+        return c0x / s, c0y / s, c0z / s
+    if n1 >= n2:
         s = np.sqrt(n1)
-        out[0], out[1], out[2] = c1x / s, c1y / s, c1z / s
-    else:
-        s = np.sqrt(n2)
-        out[0], out[1], out[2] = c2x / s, c2y / s, c2z / s
-    return s
+        return c1x / s, c1y / s, c1z / s
+    s = np.sqrt(n2)
+    return c2x / s, c2y / s, c2z / s
 
 
 @njit(**NJIT_FLAGS)
@@ -119,27 +117,24 @@ def sym3_eigh(A: np.ndarray, vals: np.ndarray, vecs: np.ndarray) -> None:
         gap = min(lam_max - lam_mid, lam_mid - lam_min)
         ok = gap > 1e-3 * p
     if ok:
-        n = np.empty(3)
-        u = np.empty(3)
-        _eigvec_of(A, lam_min, n)
-        _eigvec_of(A, lam_max, u)
-        d = u[0] * n[0] + u[1] * n[1] + u[2] * n[2]
-        u[0] -= d * n[0]
-        u[1] -= d * n[1]
-        u[2] -= d * n[2]
-        s = np.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
-        u[0] /= s
-        u[1] /= s
-        u[2] /= s
+        n0, n1, n2 = _eigvec_of(A, lam_min)
+        u0, u1, u2 = _eigvec_of(A, lam_max)
+        d = u0 * n0 + u1 * n1 + u2 * n2
+        u0 -= d * n0
+        u1 -= d * n1
+        u2 -= d * n2
+        s = np.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+        u0 /= s
+        u1 /= s
+        u2 /= s
         vals[0] = lam_min
         vals[1] = lam_mid
         vals[2] = lam_max
-        for a in range(3):
-            vecs[a, 0] = n[a]
-            vecs[a, 2] = u[a]
-        vecs[0, 1] = u[1] * n[2] - u[2] * n[1]
-        vecs[1, 1] = u[2] * n[0] - u[0] * n[2]
-        vecs[2, 1] = u[0] * n[1] - u[1] * n[0]
+        vecs[0, 0], vecs[1, 0], vecs[2, 0] = n0, n1, n2
+        vecs[0, 2], vecs[1, 2], vecs[2, 2] = u0, u1, u2
+        vecs[0, 1] = u1 * n2 - u2 * n1
+        vecs[1, 1] = u2 * n0 - u0 * n2
+        vecs[2, 1] = u0 * n1 - u1 * n0
         return
     w, v = np.linalg.eigh(A)
     for a in range(3):
@@ -161,10 +156,10 @@ def gicp_covariances_kernel(
         out: (N, 3, 3) float64, written.
     """
     n = points.shape[0]
+    local = np.empty((3, 3))
+    vals = np.empty(3)
+    vecs = np.empty((3, 3))
     for i in range(n):
-        local = np.empty((3, 3))
-        vals = np.empty(3)
-        vecs = np.empty((3, 3))
         _local_covariance(points, neighbors[i], local)
         sym3_eigh(local, vals, vecs)
         for a in range(3):
@@ -206,11 +201,14 @@ def mcgicp_covariances_kernel(
     n = points.shape[0]
     k = neighbors.shape[1]
     nd = descriptors.shape[1]
+    local = np.empty((3, 3))
+    vals = np.empty(3)
+    vecs = np.empty((3, 3))
+    z = np.empty((k, 2))
+    lam = np.empty(k)
+    diff = np.empty(nd)
     for i in range(n):
-        local = np.empty((3, 3))
         nbrs = neighbors[i]
-        vals = np.empty(3)
-        vecs = np.empty((3, 3))
         _local_covariance(points, nbrs, local)
         sym3_eigh(local, vals, vecs)
         s1 = max(vals[2], min_variance)
@@ -218,9 +216,6 @@ def mcgicp_covariances_kernel(
         wsum = 0.0
         m1 = 0.0
         m2 = 0.0
-        z = np.empty((k, 2))
-        lam = np.empty(k)
-        diff = np.empty(nd)
         for j in range(k):
             p = nbrs[j]
             z[j, 0] = vecs[0, 2] * points[p, 0] + vecs[1, 2] * points[p, 1] + vecs[2, 2] * points[p, 2]
@@ -262,3 +257,21 @@ def mcgicp_covariances_kernel(
                     + o22 * u2a * u2b
                     + epsilon * na * vecs[b, 0]
                 )
+
+
+@njit(**NJIT_FLAGS)
+def moved_rows_kernel(
+    points: np.ndarray, covariances: np.ndarray, T: np.ndarray, points_out: np.ndarray, cov_out: np.ndarray
+) -> None:
+    """Points and covariances moved by T (4, 4): R p + t into ``points_out`` (N, 3) and R C R^T,
+    row-major, into ``cov_out`` (N, 9) (views into one array are fine)."""
+    for i in range(points.shape[0]):
+        for r in range(3):
+            points_out[i, r] = T[r, 0] * points[i, 0] + T[r, 1] * points[i, 1] + T[r, 2] * points[i, 2] + T[r, 3]
+        C = covariances[i]
+        for r in range(3):
+            rc0 = T[r, 0] * C[0, 0] + T[r, 1] * C[1, 0] + T[r, 2] * C[2, 0]
+            rc1 = T[r, 0] * C[0, 1] + T[r, 1] * C[1, 1] + T[r, 2] * C[2, 1]
+            rc2 = T[r, 0] * C[0, 2] + T[r, 1] * C[1, 2] + T[r, 2] * C[2, 2]
+            for c in range(3):
+                cov_out[i, 3 * r + c] = rc0 * T[c, 0] + rc1 * T[c, 1] + rc2 * T[c, 2]

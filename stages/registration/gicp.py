@@ -21,12 +21,17 @@ from fleetcal.stages.registration.gicp_kernels import (
     ROBUST_CAUCHY,
     ROBUST_HUBER,
     ROBUST_NONE,
+    fitness_kernel,
     linearize_kernel,
+    match_linearize_kernel,
 )
+from fleetcal.stages.registration.kdtree import in_threads, split_range, thread_count
 from fleetcal.stages.registration.pointset import PointSet
 
 ROBUST_KERNELS = {"none": ROBUST_NONE, "huber": ROBUST_HUBER, "cauchy": ROBUST_CAUCHY}
 MIN_CORRESPONDENCES = 6
+N_CHUNKS = 8
+"""Partial sums of the linearisation per thread (blocked summation)."""
 
 
 @dataclass
@@ -66,48 +71,64 @@ def channel_alpha_for(target: PointSet, config: RegistrationConfig) -> NDArray[n
 
 
 class _Matcher:
-    """Nearest-neighbour correspondences of transformed source points in the target."""
+    """Correspondences of transformed source points in the target (nearest neighbour in the target's
+    kd-tree, 3-D or (3 + n)-D) and the linearisation at them, in one kernel pass per slice of the source.
+
+    Each source point keeps where it was last searched and the two nearest target points found there,
+    so that a later iteration searches again only the points that moved too far to keep their nearest
+    (``match_linearize_kernel``). With several ``workers`` the source is cut into that many slices
+    searched and linearised on threads (the kernel releases the GIL).
+    """
 
     def __init__(self, source: PointSet, target: PointSet, config: RegistrationConfig) -> None:
         self.source = source
+        self.target = target
         self.config = config
-        self.multichannel = config.method in ("mcgicp", "color_icp")
-        if self.multichannel:
+        if config.method in ("mcgicp", "color_icp"):
             alpha = channel_alpha_for(target, config)
             self.tree = target.feature_tree(alpha)
-            self.source_features = np.empty((source.n_points, 3 + alpha.shape[0]))
-            self.source_features[:, 3:] = source.scaled_descriptors(alpha)
+            self.source_features = np.ascontiguousarray(source.scaled_descriptors(alpha))
         else:
             self.tree = target.tree
-        self.target_points = target.points_xyz
+            self.source_features = np.zeros((source.n_points, 0))
+        self.searched_at = np.zeros((source.n_points, self.tree.dims))
+        self.nearest = np.full(source.n_points, -1, dtype=np.int64)
+        self.second = np.full(source.n_points, -1, dtype=np.int64)
+        self.second_dist = np.full(source.n_points, -1.0)
+        self.corr = np.full(source.n_points, -1, dtype=np.int64)
+        self.slices = split_range(source.n_points, thread_count(config.workers))
 
-    def match(self, T: NDArray[np.float64]) -> NDArray[np.int64]:
-        """(N,) target index per source point, -1 beyond the maximum correspondence distance."""
-        moved = self.source.points_xyz @ T[:3, :3].T + T[:3, 3]
-        query = moved
-        if self.multichannel:
-            self.source_features[:, :3] = moved
-            query = self.source_features
-        dist, idx = self.tree.query(
-            query,
-            k=1,
-            distance_upper_bound=self.config.max_correspondence_distance_m,
-            workers=self.config.workers,
-        )
-        idx = np.where(np.isfinite(dist), idx, -1).astype(np.int64)
-        return idx
+    def match_linearize(
+        self, T: NDArray[np.float64], robust: int, n_chunks: int
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], float, int]:
+        """Correspondences at T into ``corr`` (target index per source point, -1 beyond the maximum
+        correspondence distance); returns (H, g, cost, used) of ``linearize_kernel`` at them."""
+        T = np.ascontiguousarray(T, dtype=np.float64)
+        src, tgt = self.source, self.target
+        max_d2 = self.config.max_correspondence_distance_m**2
 
-    def fitness_rmse(self, T: NDArray[np.float64], corr: NDArray[np.int64]) -> tuple[float, float]:
-        """(fraction of source points matched within the max distance in 3-D, RMS distance m)."""
-        valid = corr >= 0
-        if not np.any(valid):
+        def run(lo: int, hi: int) -> tuple[NDArray[np.float64], NDArray[np.float64], float, int]:
+            return match_linearize_kernel(  # type: ignore[no-any-return]
+                *self.tree.arrays, src.points_xyz[lo:hi], self.source_features[lo:hi], src.covariances[lo:hi],
+                tgt.points_xyz, tgt.covariances, T, max_d2, robust, self.config.robust_scale, n_chunks,
+                self.searched_at[lo:hi], self.nearest[lo:hi], self.second[lo:hi], self.second_dist[lo:hi],
+                self.corr[lo:hi],
+            )  # fmt: skip
+
+        parts = in_threads(run, self.slices)
+        if len(parts) == 1:
+            return parts[0]
+        return (sum(p[0] for p in parts), sum(p[1] for p in parts),  # type: ignore[return-value]
+                float(sum(p[2] for p in parts)), int(sum(p[3] for p in parts)))  # fmt: skip
+
+    def fitness_rmse(self, T: NDArray[np.float64]) -> tuple[float, float]:
+        """(fraction of source points whose correspondence lies within the max distance of them in 3-D at
+        T, RMS distance of those, m; inf when none)."""
+        inliers, total = fitness_kernel(self.source.points_xyz, self.target.points_xyz, self.corr,
+                                        np.ascontiguousarray(T), self.config.max_correspondence_distance_m**2)
+        if inliers == 0:
             return 0.0, float("inf")
-        moved = self.source.points_xyz[valid] @ T[:3, :3].T + T[:3, 3]
-        sq = np.sum((moved - self.target_points[corr[valid]]) ** 2, axis=1)
-        inlier = sq <= self.config.max_correspondence_distance_m**2
-        if not np.any(inlier):
-            return 0.0, float("inf")
-        return float(np.count_nonzero(inlier)) / self.source.n_points, float(np.sqrt(sq[inlier].mean()))
+        return inliers / self.source.n_points, float(np.sqrt(total / inliers))
 
 
 def _check_inputs(
@@ -159,7 +180,6 @@ def register(
     _check_inputs(source, target, T, config)
     matcher = _Matcher(source, target, config)
     robust = ROBUST_KERNELS[config.robust_kernel]
-    n_chunks = 8
     rot_eps = np.radians(config.rotation_eps_deg)
     lm_lambda = config.lm_initial_lambda
     H = np.zeros((6, 6))
@@ -167,25 +187,16 @@ def register(
     iterations = 0
     used = 0
     history: list[float] = []
-    corr = matcher.match(T)
 
-    def linearize(
-        T_now: NDArray[np.float64], c: NDArray[np.int64]
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64], float, int]:
+    def linearize(T_now: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], float, int]:
+        """At fixed correspondences (the Levenberg-Marquardt trial steps)."""
         return linearize_kernel(  # type: ignore[no-any-return]
-            source.points_xyz,
-            source.covariances,
-            target.points_xyz,
-            target.covariances,
-            c,
-            np.ascontiguousarray(T_now),
-            robust,
-            config.robust_scale,
-            n_chunks,
-        )
+            source.points_xyz, source.covariances, target.points_xyz, target.covariances, matcher.corr,
+            np.ascontiguousarray(T_now), robust, config.robust_scale, N_CHUNKS,
+        )  # fmt: skip
 
     for iteration in range(config.max_iterations):
-        H, g, cost, used = linearize(T, corr)
+        H, g, cost, used = matcher.match_linearize(T, robust, N_CHUNKS)
         history.append(float(cost))
         if used < MIN_CORRESPONDENCES:
             break
@@ -198,7 +209,7 @@ def register(
             for _ in range(10):
                 delta = _solve(H, g, lm_lambda)
                 T_try = T @ exp_se3(delta)
-                _, _, cost_try, _ = linearize(T_try, corr)
+                _, _, cost_try, _ = linearize(T_try)
                 if cost_try <= cost:
                     T = T_try
                     lm_lambda = max(lm_lambda / 10.0, 1e-12)
@@ -209,8 +220,9 @@ def register(
         if np.linalg.norm(delta[:3]) < rot_eps and np.linalg.norm(delta[3:]) < config.translation_eps_m:
             converged = True  # H, correspondences and fitness are those of the last linearisation
             break
-        corr = matcher.match(T)
-    fitness, rmse = matcher.fitness_rmse(T, corr)
+    else:
+        matcher.match_linearize(T, robust, N_CHUNKS)  # the correspondences of the final pose
+    fitness, rmse = matcher.fitness_rmse(T)
     if used < MIN_CORRESPONDENCES:
         converged = False
         fitness = 0.0 if used == 0 else fitness

@@ -8,10 +8,11 @@ odometry poses, either
   prepared points and covariances (GICP eq. 4-5 or MC-GICP eq. 6-10, rotated into the map frame),
   voxel-downsampled together with points, descriptors and covariances averaged per voxel (no
   neighbour search on the merged cloud). A scan becomes a keyframe when it has moved
-  ``keyframe_distance_m`` or turned ``keyframe_rotation_deg`` since the last one; the local map is
-  rebuilt only then, so a step costs one registration plus an amortised O(window) merge. Matching
-  against several earlier viewpoints removes the bias of scan-to-scan matching towards zero motion
-  (the sensor-fixed ring pattern of the previous scan) and drift accumulates per keyframe, not per scan.
+  ``keyframe_distance_m`` or turned ``keyframe_rotation_deg`` since the last one; the per-voxel sums
+  are updated only then (the new keyframe added, the oldest removed) and the target's kd-tree rebuilt,
+  so a step costs one registration plus O(keyframe) bookkeeping. Matching against several earlier
+  viewpoints removes the bias of scan-to-scan matching towards zero motion (the sensor-fixed ring
+  pattern of the previous scan) and drift accumulates per keyframe, not per scan.
 - ``scan_to_scan``: against the previous scan.
 """
 
@@ -34,13 +35,8 @@ from fleetcal.pipeline.transforms import apply, invert, rotation_error_deg, tran
 from fleetcal.stages.registration.config import RegistrationConfig
 from fleetcal.stages.registration.deskew import deskew_points, deskew_pointset, sweep_twist, sweep_usable
 from fleetcal.stages.registration.gicp import register
-from fleetcal.stages.registration.pointset import (
-    PointSet,
-    merge_pointsets,
-    pointset_from_frame,
-    transformed_pointset,
-)
-from fleetcal.stages.registration.voxel import voxel_downsample, voxel_keys
+from fleetcal.stages.registration.pointset import PointSet, moved_rows, pointset_from_frame, pointset_from_rows
+from fleetcal.stages.registration.voxel import VoxelSums, voxel_downsample, voxel_keys
 
 log = logging.getLogger(__name__)
 
@@ -89,26 +85,22 @@ class VoxelMap:
     """A voxel grid accumulating points in the map frame; each voxel keeps the mean position and channels.
 
     Channels (``intensity`` float, ``r``, ``g``, ``b`` uint8) are averaged; ``channels()`` returns
-    only those that every inserted scan carried. Inserted scans are reduced to their own voxels and
-    queued; the queue is merged into the grid when it holds as many voxels as the grid (and on every
-    read), so a scan costs O(its points) amortised instead of a pass over the whole map.
+    only those that every inserted scan carried. Each point is added to running per-voxel sums in a
+    hash table (``VoxelSums``), so a scan costs O(its points) whatever the size of the map; reads give
+    the voxels in ascending key order.
     """
 
     def __init__(self, voxel_size_m: float) -> None:
         if not (np.isfinite(voxel_size_m) and voxel_size_m > 0):
             raise InputError(f"map voxel size must be > 0, got {voxel_size_m}")
         self.voxel_size_m = float(voxel_size_m)
-        self._keys = np.zeros(0, dtype=np.int64)
-        self._sums = np.zeros((0, 3 + len(MAP_CHANNELS)))
-        self._counts = np.zeros(0, dtype=np.int64)
-        self._pending: list[tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64]]] = []
-        self._pending_voxels = 0
+        self._sums = VoxelSums(3 + len(MAP_CHANNELS))
+        self._means: NDArray[np.float64] | None = None
         self._present: set[str] | None = None
 
     @property
     def n_voxels(self) -> int:
-        self._merge_pending()
-        return int(self._keys.shape[0])
+        return self._sums.n_occupied
 
     def insert(
         self, points_map_xyz: NDArray[np.floating], channels: dict[str, NDArray[np.generic]] | None = None
@@ -130,53 +122,33 @@ class VoxelMap:
         values = values[finite & np.all(np.isfinite(values), axis=1)]
         if values.shape[0] == 0:
             return
-        keys, sums, counts = _reduce_by_key(voxel_keys(values[:, :3], self.voxel_size_m), values,
-                                            np.ones(values.shape[0], dtype=np.int64))  # fmt: skip
-        self._pending.append((keys, sums, counts))
-        self._pending_voxels += keys.shape[0]
-        if self._pending_voxels >= self._keys.shape[0]:
-            self._merge_pending()
+        self._sums.add(voxel_keys(values[:, :3], self.voxel_size_m), values)
+        self._means = None
 
-    def _merge_pending(self) -> None:
-        if not self._pending:
-            return
-        self._keys, self._sums, self._counts = _reduce_by_key(
-            np.concatenate([self._keys, *(k for k, _, _ in self._pending)]),
-            np.concatenate([self._sums, *(s for _, s, _ in self._pending)]),
-            np.concatenate([self._counts, *(c for _, _, c in self._pending)]),
-        )
-        self._pending, self._pending_voxels = [], 0
+    def _sorted_means(self) -> NDArray[np.float64]:
+        """(M, 3 + channels) voxel means in ascending key order (kept until the next insert)."""
+        if self._means is None:
+            keys, means = self._sums.means()
+            self._means = means[np.argsort(keys)]
+        return self._means
 
     def points(self) -> NDArray[np.float64]:
         """(M, 3) mean position of each voxel, metres, map frame."""
-        self._merge_pending()
-        return self._sums[:, :3] / self._counts[:, None]
+        return self._sorted_means()[:, :3].copy()
 
     def channels(self) -> dict[str, NDArray[np.generic]]:
         """Mean channels per voxel: ``intensity`` float32; ``r``, ``g``, ``b`` uint8."""
-        self._merge_pending()
+        means = self._sorted_means()
         out: dict[str, NDArray[np.generic]] = {}
         for col, name in enumerate(MAP_CHANNELS):
             if self._present is None or name not in self._present:
                 continue
-            mean = self._sums[:, 3 + col] / self._counts
+            mean = means[:, 3 + col]
             if name in COLOR_CHANNELS:
                 out[name] = np.clip(np.rint(mean), 0, 255).astype(np.uint8)
             else:
                 out[name] = mean.astype(np.float32)
         return out
-
-
-def _reduce_by_key(
-    keys: NDArray[np.int64], sums: NDArray[np.float64], counts: NDArray[np.int64]
-) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64]]:
-    """(distinct keys ascending, summed rows (M, c), summed counts (M,)) of rows sharing a key."""
-    unique, inverse = np.unique(keys, return_inverse=True)
-    out = np.empty((unique.shape[0], sums.shape[1]))
-    for c in range(sums.shape[1]):
-        out[:, c] = np.bincount(inverse, weights=sums[:, c], minlength=unique.shape[0])
-    total = np.bincount(inverse, weights=counts, minlength=unique.shape[0]).astype(np.int64)
-    return unique, out, total
 
 
 def _as_pointset(scan: PointSet | LidarFrame, config: RegistrationConfig) -> PointSet:
@@ -210,17 +182,24 @@ class LocalMap:
     """Sliding window of keyframes (prepared points and covariances in the map frame) as one target PointSet.
 
     Each keyframe keeps the covariances its scan was prepared with (GICP eq. 4-5 or MC-GICP eq. 6-10),
-    rotated into the map frame (R C R^T). The merged window is voxel-downsampled at the registration voxel
-    size with positions, descriptors and covariances averaged per voxel, so a surface seen from several
+    rotated into the map frame (R C R^T). The window is voxel-downsampled at the registration voxel size
+    with positions, descriptors and covariances averaged per voxel, so a surface seen from several
     viewpoints is one layer of points with the mean of its plane models; no neighbour search or
-    covariance estimation runs on the merged cloud, only its kd-tree is built.
+    covariance estimation runs on the merged cloud, only its kd-tree is built. The per-voxel sums are
+    kept (``VoxelSums``): a keyframe is added to them and removed when it leaves the window, so a new
+    keyframe costs O(its points), not a merge of the whole window.
     """
 
     def __init__(self, config: RegistrationConfig, max_keyframes: int) -> None:
         if max_keyframes < 1:
             raise ConfigError(f"local_map_keyframes must be >= 1, got {max_keyframes}")
         self.config = config
-        self._keyframes: deque[PointSet] = deque(maxlen=max_keyframes)
+        self.max_keyframes = max_keyframes
+        self._keyframes: deque[tuple[NDArray[np.int64], NDArray[np.float64]]] = deque()
+        self._sums: VoxelSums | None = None
+        self._names: tuple[str, ...] = ()
+        self._stamp_ns = 0
+        self._next_key = 0
         self._target: PointSet | None = None
         self.T_map_last_keyframe: NDArray[np.float64] | None = None
 
@@ -229,15 +208,41 @@ class LocalMap:
         return len(self._keyframes)
 
     def add(self, scan: PointSet, T_map_scan: NDArray[np.float64]) -> None:
-        """Add a prepared scan at its map pose as a keyframe (drops the oldest beyond the window)."""
-        self._keyframes.append(transformed_pointset(scan, T_map_scan))
+        """Add a prepared scan at its map pose as a keyframe (drops the oldest beyond the window).
+
+        Raises:
+            InputError: a scan prepared with other channels than the keyframes before it.
+        """
+        if self._sums is None:
+            self._names = scan.channel_names
+            self._sums = VoxelSums(12 + len(self._names))
+        elif scan.channel_names != self._names:
+            raise InputError("scans to merge were prepared with different channels")
+        rows = moved_rows(scan, T_map_scan)
+        if self.config.voxel_size_m > 0:
+            keys = voxel_keys(rows[:, :3], self.config.voxel_size_m)
+        else:  # no downsampling: every point is its own voxel
+            keys = np.arange(self._next_key, self._next_key + rows.shape[0], dtype=np.int64)
+            self._next_key += rows.shape[0]
+        self._sums.add(keys, rows)
+        self._keyframes.append((keys, rows))
+        if len(self._keyframes) > self.max_keyframes:
+            self._sums.remove(*self._keyframes.popleft())
+        self._stamp_ns = scan.stamp_ns
         self._target = None
         self.T_map_last_keyframe = np.array(T_map_scan, dtype=np.float64)
 
     def target(self) -> PointSet:
-        """The merged window as a registration target (built lazily after each keyframe)."""
+        """The merged window as a registration target (built lazily after each keyframe).
+
+        Raises:
+            InputError: no keyframe yet.
+        """
+        if self._sums is None:
+            raise InputError("the local map has no keyframe yet")
         if self._target is None:
-            self._target = merge_pointsets(list(self._keyframes), self.config)
+            _, means = self._sums.means()
+            self._target = pointset_from_rows(means, self._names, self.config, self._stamp_ns, "map")
         return self._target
 
 

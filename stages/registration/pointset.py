@@ -13,12 +13,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from fleetcal.pipeline.errors import ConfigError, InputError
 from fleetcal.pipeline.frames import LidarFrame
 from fleetcal.stages.registration.config import CHANNEL_MODES, RegistrationConfig
+from fleetcal.stages.registration.covariance_kernels import moved_rows_kernel
 from fleetcal.stages.registration.covariances import build_kdtree, estimate_covariances, knn_indices
+from fleetcal.stages.registration.kdtree import KdTree
 from fleetcal.stages.registration.voxel import voxel_downsample_capped
 
 log = logging.getLogger(__name__)
@@ -72,8 +73,8 @@ class PointSet:
     stamp_ns: int = 0
     frame_id: str = ""
     times_s: NDArray[np.float64] | None = None
-    _tree: cKDTree | None = field(default=None, init=False, repr=False, compare=False)
-    _feature_trees: dict[tuple[float, ...], cKDTree] = field(
+    _tree: KdTree | None = field(default=None, init=False, repr=False, compare=False)
+    _feature_trees: dict[tuple[float, ...], KdTree] = field(
         default_factory=dict, init=False, repr=False, compare=False
     )
 
@@ -82,7 +83,7 @@ class PointSet:
         return int(self.points_xyz.shape[0])
 
     @property
-    def tree(self) -> cKDTree:
+    def tree(self) -> KdTree:
         """kd-tree over ``points_xyz`` (built on first use)."""
         if self._tree is None:
             self._tree = build_kdtree(self.points_xyz)
@@ -92,7 +93,7 @@ class PointSet:
         """(N, n) descriptors multiplied by sqrt(alpha) (the weighted kd-tree coordinates)."""
         return self.channels * np.sqrt(channel_alpha)[None, :]
 
-    def feature_tree(self, channel_alpha: NDArray[np.float64]) -> cKDTree:
+    def feature_tree(self, channel_alpha: NDArray[np.float64]) -> KdTree:
         """kd-tree over (3 + n)-D points [xyz, sqrt(alpha) * descriptors] (cached per alpha)."""
         key = tuple(float(a) for a in channel_alpha)
         tree = self._feature_trees.get(key)
@@ -251,6 +252,36 @@ def transformed_pointset(scan: PointSet, T_new_scan: NDArray[np.float64]) -> Poi
     )
 
 
+def moved_rows(scan: PointSet, T_new_scan: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(N, 3 + n + 9) rows [R p + t, descriptors, R C R^T flattened] of ``scan`` moved into another frame
+    (``transformed_pointset`` as one array: the columns that ``merge_pointsets`` averages)."""
+    n = scan.channels.shape[1]
+    rows = np.empty((scan.n_points, 12 + n))
+    moved_rows_kernel(scan.points_xyz, np.ascontiguousarray(scan.covariances), np.ascontiguousarray(T_new_scan),
+                      rows[:, :3], rows[:, 3 + n :])  # fmt: skip
+    rows[:, 3 : 3 + n] = scan.channels
+    return rows
+
+
+def pointset_from_rows(
+    rows: NDArray[np.float64], names: tuple[str, ...], config: RegistrationConfig, stamp_ns: int, frame_id: str
+) -> PointSet:
+    """PointSet of rows [position, descriptors, covariance flattened] (``moved_rows``, or their means per
+    voxel); Lambda and the channel variances are those of these descriptors."""
+    n = len(names)
+    desc = np.ascontiguousarray(rows[:, 3 : 3 + n])
+    if config.descriptor_covariance is not None and n > 0:
+        lam = np.atleast_2d(np.asarray(config.descriptor_covariance, dtype=np.float64))
+        variance = np.maximum(desc.var(axis=0), MIN_CHANNEL_VARIANCE)
+    else:
+        lam, variance = _descriptor_covariance(desc, config.channels, config.descriptor_variance_scale)
+    return PointSet(
+        points_xyz=np.ascontiguousarray(rows[:, :3]), channels=desc,
+        covariances=np.ascontiguousarray(rows[:, 3 + n :]).reshape(-1, 3, 3), channel_names=names,
+        descriptor_covariance=lam, channel_variance=variance, stamp_ns=stamp_ns, frame_id=frame_id,
+    )  # fmt: skip
+
+
 def merge_pointsets(scans: Sequence[PointSet], config: RegistrationConfig, frame_id: str = "map") -> PointSet:
     """One PointSet of several prepared scans already in a common frame, voxel-downsampled at the
     registration voxel size: positions, descriptors and covariances are averaged per voxel (a mean of
@@ -265,23 +296,12 @@ def merge_pointsets(scans: Sequence[PointSet], config: RegistrationConfig, frame
     names = scans[0].channel_names
     if any(s.channel_names != names for s in scans):
         raise InputError("scans to merge were prepared with different channels")
-    n = len(names)
     points = np.concatenate([s.points_xyz for s in scans])
     columns = np.concatenate(
         [np.concatenate([s.channels, s.covariances.reshape(-1, 9)], axis=1) for s in scans]
     )
     points, columns, _, _ = voxel_downsample_capped(points, config.voxel_size_m, columns)
-    desc = np.ascontiguousarray(columns[:, :n])
-    cov = np.ascontiguousarray(columns[:, n:].reshape(-1, 3, 3))
-    if config.descriptor_covariance is not None and n > 0:
-        lam = np.atleast_2d(np.asarray(config.descriptor_covariance, dtype=np.float64))
-        variance = np.maximum(desc.var(axis=0), MIN_CHANNEL_VARIANCE)
-    else:
-        lam, variance = _descriptor_covariance(desc, config.channels, config.descriptor_variance_scale)
-    return PointSet(
-        points_xyz=np.ascontiguousarray(points), channels=desc, covariances=cov, channel_names=names,
-        descriptor_covariance=lam, channel_variance=variance, stamp_ns=scans[-1].stamp_ns, frame_id=frame_id,
-    )  # fmt: skip
+    return pointset_from_rows(np.concatenate([points, columns], axis=1), names, config, scans[-1].stamp_ns, frame_id)
 
 
 def _time_column(times_s: NDArray[np.generic] | None, valid: NDArray[np.bool_]) -> NDArray[np.float64] | None:

@@ -1,11 +1,28 @@
-"""Voxel-grid downsampling that averages positions and per-point channels (sort-based, NumPy)."""
+"""Voxel-grid downsampling that averages positions and per-point channels, and sums of rows per key.
+
+Rows are grouped by their int64 voxel key with a hash table (``voxel_kernels``) and the groups numbered
+in ascending key order, so the output does not depend on the input order and each voxel's sum runs
+over its rows in input order.
+"""
 
 from __future__ import annotations
+
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
 from fleetcal.pipeline.errors import ConfigError, InputError
+from fleetcal.stages.registration.voxel_kernels import (
+    accumulate_kernel,
+    group_kernel,
+    means_kernel,
+    rehash_kernel,
+    sum_rows_kernel,
+    voxel_keys_kernel,
+)
+
+G = TypeVar("G", bound=np.generic)
 
 _KEY_BITS = 21
 _KEY_OFFSET = 1 << (_KEY_BITS - 1)
@@ -13,7 +30,7 @@ _KEY_MASK = (1 << _KEY_BITS) - 1
 
 
 _KEY_CHUNK = 1 << 20
-"""Points per chunk when computing keys: float64 temporaries stay ~25 MB whatever the cloud size."""
+"""Keys per chunk when coarsening them (temporaries stay ~25 MB whatever the cloud size)."""
 
 
 def voxel_keys(
@@ -21,8 +38,8 @@ def voxel_keys(
 ) -> NDArray[np.int64]:
     """One int64 key per point: the voxel's integer coordinates packed 21 bits each.
 
-    Computed in chunks of ``_KEY_CHUNK`` points (float64 per chunk, the input's dtype is kept), so the
-    only full-size array made is the (N,) key vector.
+    One pass over the points in their own dtype (``voxel_kernels.voxel_keys_kernel``): the only
+    full-size array made is the (N,) key vector.
 
     Args:
         points_xyz: (N, 3) points, metres.
@@ -33,27 +50,18 @@ def voxel_keys(
         (N,) int64 keys; equal keys mean the same voxel.
 
     Raises:
-        InputError: points farther than 2^20 voxels from the origin (keys would collide).
+        InputError: points farther than 2^20 voxels from the origin (keys would collide), or not finite
+            outside ``valid``.
     """
     pts = np.asarray(points_xyz)
+    if not np.issubdtype(pts.dtype, np.floating):
+        pts = pts.astype(np.float64)
     keys = np.empty(pts.shape[0], dtype=np.int64)
-    for lo in range(0, pts.shape[0], _KEY_CHUNK):
-        scaled = pts[lo : lo + _KEY_CHUNK].astype(np.float64) / voxel_size_m
-        ok = None if valid is None else valid[lo : lo + _KEY_CHUNK]
-        if ok is not None:
-            scaled[~ok] = 0.0
-        cells = np.floor(scaled).astype(np.int64)
-        if cells.size and (cells.min() < -_KEY_OFFSET or cells.max() >= _KEY_OFFSET):
-            raise InputError(
-                f"points span more than {_KEY_OFFSET} voxels of {voxel_size_m} m from the origin; "
-                "use a larger voxel size"
-            )
-        cells += _KEY_OFFSET
-        cells &= _KEY_MASK
-        chunk = (cells[:, 0] << (2 * _KEY_BITS)) | (cells[:, 1] << _KEY_BITS) | cells[:, 2]
-        if ok is not None:
-            chunk[~ok] = -1
-        keys[lo : lo + _KEY_CHUNK] = chunk
+    mask = np.ones(0, dtype=np.bool_) if valid is None else np.ascontiguousarray(valid, dtype=np.bool_)
+    if not voxel_keys_kernel(pts, float(voxel_size_m), mask, _KEY_OFFSET, _KEY_BITS, keys):
+        raise InputError(
+            f"points span more than {_KEY_OFFSET} voxels of {voxel_size_m} m from the origin; use a larger voxel size"
+        )
     return keys
 
 
@@ -110,11 +118,11 @@ def voxel_downsample_capped(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64], float]:
     """``voxel_downsample`` with invalid points skipped in place and a cap on the voxels kept.
 
-    When more than ``max_voxels`` voxels are occupied, the voxel edge is doubled (on the integer
-    keys, no pass over the points) until at most ``max_voxels`` remain; the means are then taken
-    once over the original points. Besides the input, the full-size arrays are the int64 keys, one
-    sort permutation and the voxel index of each point (about 24 bytes a point) and one float64
-    column at a time; no float64 copy of the cloud and no filtered copy for ``valid`` are made.
+    When more than ``max_voxels`` voxels are occupied, the voxel edge is doubled (on the integer keys)
+    until at most ``max_voxels`` remain, the grouping stopping as soon as the cap is passed (its hash
+    table stays within 2 * ``max_voxels`` slots); the means are then taken once over the original
+    points. Besides the input, the full-size arrays are the int64 key and the voxel number of each
+    point (16 bytes a point); no float64 copy of the cloud and no filtered copy for ``valid`` are made.
 
     Args:
         points_xyz: (N, 3) points, metres (float32 or float64); finite where ``valid``.
@@ -158,47 +166,104 @@ def voxel_downsample_capped(
         return (pts.astype(np.float64), ch.astype(np.float64), np.ones(pts.shape[0], dtype=np.int64),
                 float(voxel_size_m))  # fmt: skip
     keys = voxel_keys(pts, voxel_size_m, valid)
-    # the sort only numbers the voxels (ascending key); the sums run in point order (bincount).
-    # Buffers are reused: the sorted keys become the voxel numbers, the keys the per-point index.
-    order = np.argsort(keys)
-    voxel_ids = keys[order]
+    group = np.empty(n, dtype=np.int64)
     levels = 0
-    if max_voxels is not None:
-        occupied = _unique_sorted(voxel_ids)
-        while occupied.shape[0] > max_voxels and levels < _KEY_BITS - 1:
-            levels += 1
-            occupied = _unique_sorted(np.sort(coarsen_keys(occupied, 1)))
-        del occupied
-        if levels:  # sort again on the coarser keys (only for scans over the cap)
-            coarsen_keys(keys, levels)
-            order = np.argsort(keys)
-            voxel_ids = keys[order]
-    starts = np.empty(n, dtype=bool)
-    starts[0] = True
-    np.not_equal(voxel_ids[1:], voxel_ids[:-1], out=starts[1:])
-    skip = 1 if valid is not None else 0  # the invalid points (key -1) sort first: group 0
-    np.cumsum(starts, out=voxel_ids)
-    del starts
-    voxel_ids -= 1
-    m = int(voxel_ids[-1]) + 1
-    inverse = keys
-    inverse[order] = voxel_ids
-    del order, voxel_ids, keys
-    counts = np.bincount(inverse, minlength=m)[skip:]
-    out_pts = np.empty((m - skip, 3))
-    out_ch = np.empty((m - skip, ch.shape[1]))
-    for out, values in [(out_pts, pts), (out_ch, ch)]:
-        for col in range(values.shape[1]):
-            out[:, col] = np.bincount(inverse, weights=values[:, col], minlength=m)[skip:]
-            out[:, col] /= counts
-    return out_pts, out_ch, counts.astype(np.int64), float(voxel_size_m) * 2.0**levels
+    while True:  # with a cap: coarser and coarser keys until the voxels fit
+        last_try = max_voxels is None or levels == _KEY_BITS - 1
+        distinct, complete = group_kernel(keys, group, -1 if last_try else max_voxels)
+        if complete:
+            break
+        coarsen_keys(keys, 1)
+        levels += 1
+    del keys
+    rank = _ascending_rank(distinct)
+    m = distinct.shape[0]
+    out_pts = np.zeros((m, 3))
+    out_ch = np.zeros((m, ch.shape[1]))
+    counts = np.zeros(m, dtype=np.int64)
+    sum_rows_kernel(group, rank, pts, out_pts, counts)
+    sum_rows_kernel(group, rank, ch, out_ch, np.zeros(m, dtype=np.int64))
+    out_pts /= counts[:, None]
+    out_ch /= counts[:, None]
+    return out_pts, out_ch, counts, float(voxel_size_m) * 2.0**levels
 
 
-def _unique_sorted(sorted_keys: NDArray[np.int64]) -> NDArray[np.int64]:
-    """Distinct non-negative (valid) values of a sorted key array."""
-    keep = np.empty(sorted_keys.shape[0], dtype=bool)
-    if keep.size:
-        keep[0] = True
-        np.not_equal(sorted_keys[1:], sorted_keys[:-1], out=keep[1:])
-        keep &= sorted_keys >= 0
-    return sorted_keys[keep]
+def _ascending_rank(distinct: NDArray[np.int64]) -> NDArray[np.int64]:
+    """(M,) position of each of the distinct keys in ascending order."""
+    rank = np.empty(distinct.shape[0], dtype=np.int64)
+    rank[np.argsort(distinct)] = np.arange(distinct.shape[0])
+    return rank
+
+
+class VoxelSums:
+    """Running sums of rows (c columns) and row counts per voxel key, to which rows are added and from
+    which they are removed again (a sliding window of scans), in a hash table (``voxel_kernels``).
+
+    Adding or removing N rows costs O(N), whatever the number of voxels held. Voxels emptied by
+    removals keep their slot until they outnumber the occupied ones, then the table is compacted.
+    """
+
+    def __init__(self, n_columns: int) -> None:
+        self.n_columns = n_columns
+        self._n_groups = 0
+        self._group_keys = np.zeros(0, dtype=np.int64)
+        self._sums = np.zeros((0, n_columns + 1))  # the row count in the last column
+        self._table = np.full((16, 2), -1, dtype=np.int64)
+
+    @property
+    def n_occupied(self) -> int:
+        """Voxels holding at least one row."""
+        return int(np.count_nonzero(self._sums[: self._n_groups, -1]))
+
+    def add(self, keys: NDArray[np.int64], values: NDArray[np.floating]) -> None:
+        """Add rows (N, c) under their keys (N,) (negative keys: skipped)."""
+        self._accumulate(keys, values, 1)
+
+    def remove(self, keys: NDArray[np.int64], values: NDArray[np.floating]) -> None:
+        """Remove rows added before (the same keys and values)."""
+        self._accumulate(keys, values, -1)
+        if self._n_groups > 1024 and self._n_groups > 2 * self.n_occupied:
+            self._compact()
+
+    def means(self) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """(keys (M,), mean rows (M, c)) of the occupied voxels, in no particular order."""
+        keys = np.empty(self._n_groups, dtype=np.int64)
+        means = np.empty((self._n_groups, self.n_columns))
+        m = means_kernel(self._sums, self._n_groups, self._group_keys, keys, means)
+        return keys[:m], means[:m]
+
+    def _accumulate(self, keys: NDArray[np.int64], values: NDArray[np.floating], sign: int) -> None:
+        keys = np.ascontiguousarray(keys, dtype=np.int64)
+        vals = np.asarray(values)
+        if vals.ndim != 2 or vals.shape != (keys.shape[0], self.n_columns):
+            raise InputError(f"values must be ({keys.shape[0]}, {self.n_columns}), got {vals.shape}")
+        need = self._n_groups + keys.shape[0]
+        if need > self._sums.shape[0]:
+            size = max(need, 2 * self._sums.shape[0])
+            self._group_keys = _grown(self._group_keys, size)
+            self._sums = _grown(self._sums, size)
+        if 2 * need > self._table.shape[0]:
+            self._rehash(need)
+        self._n_groups = accumulate_kernel(self._table, self._group_keys, self._sums, self._n_groups, keys, vals,
+                                           sign)  # fmt: skip
+
+    def _rehash(self, groups: int) -> None:
+        size = 16
+        while size < 2 * groups:
+            size *= 2
+        self._table = np.full((size, 2), -1, dtype=np.int64)
+        rehash_kernel(self._group_keys, self._n_groups, self._table)
+
+    def _compact(self) -> None:
+        keep = np.flatnonzero(self._sums[: self._n_groups, -1] > 0)
+        self._n_groups = keep.shape[0]
+        self._group_keys = np.ascontiguousarray(self._group_keys[keep])
+        self._sums = np.ascontiguousarray(self._sums[keep])
+        self._rehash(self._n_groups)
+
+
+def _grown(values: NDArray[G], rows: int) -> NDArray[G]:
+    """``values`` with zero rows appended up to ``rows``."""
+    out = np.zeros((rows, *values.shape[1:]), dtype=values.dtype)
+    out[: values.shape[0]] = values
+    return out
