@@ -51,7 +51,8 @@ def errors(T: NDArray[np.float64]) -> tuple[float, float]:
     return rotation_error_deg(T, true_T_camera_lidar()), translation_error_m(T, true_T_camera_lidar())
 
 
-CONFIG = CalibrationConfig(search_deg=3.0, search_m=0.4, repeats=2)
+CONFIG = CalibrationConfig(search_deg=2.0, search_m=0.4, repeats=1, n_particles=60, max_iterations=40,
+                           profile_translation_m=0.0)  # the weak-axis profile is not what these tests are about
 START = perturb(true_T_camera_lidar(), 1.0, 0.05, 3)
 
 
@@ -70,8 +71,9 @@ def test_clock_offset_is_found_and_the_extrinsic_with_it(scenes: list[Calibratio
 def test_offset_of_a_standing_rig_is_unobservable_and_the_extrinsic_unchanged(
         scenes: list[CalibrationFrame]) -> None:
     frames = timed_frames(scenes, 0.030, 0.0, twist_scale=0.0)
-    found = calibrate(frames, START, dataclasses.replace(CONFIG, estimate_time_offset=True))
-    fixed = calibrate(frames, START, CONFIG)
+    quick = dataclasses.replace(CONFIG, n_particles=20, max_iterations=10)  # the same search either way
+    found = calibrate(frames, START, dataclasses.replace(quick, estimate_time_offset=True))
+    fixed = calibrate(frames, START, quick)
     assert np.isnan(found.time_offset_s) and np.isinf(found.time_offset_std_s)
     np.testing.assert_allclose(found.T_camera_lidar, fixed.T_camera_lidar, atol=1e-12)
 

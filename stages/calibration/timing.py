@@ -36,7 +36,7 @@ from fleetcal.stages.calibration.uncertainty import BANDS_PER_FRAME, band_scores
 Fractions = list[list[list[NDArray[np.float64]]]]
 """Row fractions per group of scorers, frame and scorer (``TimeShiftField.row_fractions``)."""
 
-PROFILE_STEPS = 41
+PROFILE_STEPS = 21
 """Candidates of a profile over a time parameter's search range."""
 
 
