@@ -44,6 +44,8 @@ from fleetcal.stages.colorize import unoccluded
 
 
 class Scorer(Protocol):
+    points: NDArray[np.float64]  # (N, 3) lidar points scored, lidar frame, metres
+
     def score(self, T_camera_lidar_batch: NDArray[np.floating],
               focal_scale: NDArray[np.floating] | None = None) -> MetricBatch: ...
 

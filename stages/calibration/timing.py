@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from fleetcal.pipeline.transforms import Mat4, apply
-from fleetcal.stages.calibration.problem import CalibrationProblem
+from fleetcal.stages.calibration.problem import CalibrationProblem, Scorer
 from fleetcal.stages.calibration.uncertainty import BANDS_PER_FRAME, band_scores, scores_alike
 
 Fractions = list[list[list[NDArray[np.float64]]]]
@@ -176,10 +176,10 @@ class TimeShiftField:
         return np.asarray(np.linalg.inv(absorbed))
 
 
-def _with_points(scorer: object, points: NDArray[np.float64]) -> object:
+def _with_points(scorer: Scorer, points: NDArray[np.float64]) -> Scorer:
     """A shallow copy of ``scorer`` scoring ``points`` (N, 3) instead of its own."""
     twin = copy.copy(scorer)
-    twin.points = points  # type: ignore[attr-defined]
+    twin.points = points
     return twin
 
 
