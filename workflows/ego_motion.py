@@ -74,8 +74,8 @@ def camera_twist(tree: TransformTree | None, lidar_frame: str, camera_ns: int,
     before, after = max(camera_ns - half_window_ns, span[0]), min(camera_ns + half_window_ns, span[1])
     if after - before < 1_000_000:
         return None
-    T_before_after = invert(tree.lookup(world, lidar_frame, before)) @ tree.lookup(world, lidar_frame, after)
-    return twist_of(T_before_after, (after - before) * 1e-9)
+    T_before_after = scan_motion(tree, lidar_frame, after, before)
+    return None if T_before_after is None else twist_of(T_before_after, (after - before) * 1e-9)
 
 
 def _point_times(lidar: LidarFrame) -> tuple[NDArray[np.float64], PointTimes] | None:
