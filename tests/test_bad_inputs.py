@@ -324,11 +324,11 @@ CASES: list[Case] = [  # the corpus table: one case per line, long lines kept fo
     Case("timestamps_backwards_inspect", inspect(lambda tmp: good(tmp, log_time_ns=backwards)), 0, ""),
     Case("timestamps_backwards_map", mapping(lambda tmp: good(tmp, log_time_ns=backwards)), 0, ""),
     # calibrate-specific
-    Case(
+    Case(  # no tf at all: a start is searched (an ambiguous one on this small static scene: verdict suspect)
         "calibrate_no_tf_no_initial",
         calibrate(lambda tmp: good(tmp, with_tf=False)),
-        1,
-        'give one with --initial "x y z roll pitch yaw"',
+        0,
+        "",
     ),
     Case(
         "calibrate_camera_without_camera_info",

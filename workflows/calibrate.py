@@ -18,6 +18,7 @@ from typing import Any, NoReturn
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from fleetcal.pipeline.camera_model import CameraModel, with_model
 from fleetcal.pipeline.config import Config
@@ -36,7 +37,7 @@ from fleetcal.pipeline.transforms import (
     translation_error_m,
 )
 from fleetcal.readers.base import LogReader
-from fleetcal.readers.frames import CameraInfoTracker, load_tf_tree
+from fleetcal.readers.frames import CameraInfoTracker, check_tf
 from fleetcal.stages.calibration.calibrator import CalibrationResult, ProgressCallback, SearchProgress, calibrate
 from fleetcal.stages.calibration.config import CalibrationConfig as SolverConfig
 from fleetcal.stages.calibration.frame import (
@@ -44,9 +45,12 @@ from fleetcal.stages.calibration.frame import (
     CameraFeatures,
     LidarFeatures,
     camera_feature_stage,
+    equalised_grey,
     join_frame,
     lidar_feature_stage,
 )
+from fleetcal.stages.calibration.hand_eye import CameraMotion, camera_motion, motion_rotation
+from fleetcal.stages.calibration.initialisation import InitialGuess, search_initial_guess
 from fleetcal.stages.sinks import report
 from fleetcal.stages.sinks.tables import CALIBRATION_SCHEMA, FRAMES_SCHEMA, STD_COLUMNS, write_rows
 from fleetcal.workflows import mapping
@@ -74,7 +78,8 @@ class PairCalibration:
     n_points: list[int] = field(default_factory=list)
     motion_source: str = "none"  # tf (the log's odometry), odometry (fleetcal's own) or none
     estimate_frame: str = ""  # the camera frame whose axes the translation profile is along ("": camera_frame)
-    initialisation: str = "tf"  # where the initial guess came from: tf or initial
+    initialisation: str = "tf"  # where the initial guess came from: tf, initial, motion or search
+    initial_candidates: int = 0  # starting poses scored by a motion or search initialisation
 
     def axis_deviations(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """(3,) rotation (degrees) and (3,) translation (metres) standard deviations along this camera's axes
@@ -126,6 +131,7 @@ class PairCalibration:
                 self.axis_deviations()), strict=True)},
             "alike_runs": self.result.alike_runs,
             "initialisation": self.initialisation,
+            "initial_candidates": self.initial_candidates,
             **_timing_json(self.timing()),
             "motion_source": self.motion_source,
         }
@@ -184,6 +190,7 @@ class _Collected:
     lidar_frame: str
     camera_frame: str
     motion_source: str = "none"  # of the ego-motion that moved the scans to the camera stamps: tf, odometry, none
+    pairs: list[ChosenPair] = field(default_factory=list)  # the pair of each frame
 
 
 @dataclass(frozen=True)
@@ -357,6 +364,7 @@ def _joined(chosen: list[ChosenPair], scans: dict[int, Any], images: dict[int, C
         if out.overlay_image is None:
             out.overlay_image = image.image  # the objective keeps gradients only: no image per frame
         out.lidar_stamps.append(scan.lidar.stamp_ns)
+        out.pairs.append(pair)
         out.n_points.append(scan.lidar.n_points)
     if out.frames:
         return out
@@ -382,6 +390,110 @@ def _raise_unpaired(lidar_topic: str, camera_topic: str, stats: PairingStats, co
     )
 
 
+AUTO = "auto"
+"""``--initial auto``: search the start even where the log's tf has one."""
+SEARCH_FRAMES = 6
+"""Frames (spread over those collected) that score the start's candidates."""
+
+
+@dataclass(frozen=True)
+class _GreyStage:
+    """Engine stage: the equalised grey (uint8) of the images whose header stamp is in ``stamps_ns``, with the
+    stamp (others: None)."""
+
+    stamps_ns: frozenset[int]
+
+    def __call__(self, camera: CameraFrame) -> tuple[int, NDArray[np.uint8]] | None:
+        if camera.stamp_ns not in self.stamps_ns:
+            return None
+        return camera.stamp_ns, equalised_grey(camera.image)
+
+
+def rig_motions(reader: LogReader, camera_topic: str, col: _Collected, config: Config,
+                engine: Engine | None = None) -> tuple[list[CameraMotion], NDArray[np.float64]]:
+    """The camera's motion between each frame's image and the image next to it (``camera_motion``) and the
+    lidar's ``T_a_b`` (4, 4) over the same interval from the frame's twist, for the frames that have both."""
+    wanted = [(f, p) for f, p in zip(col.frames, col.pairs, strict=True)
+              if p.camera_neighbour_log_ns >= 0 and f.twist_at_camera() is not None and f.intensity is not None]
+    if not wanted:
+        return [], np.zeros((0, 4, 4))
+    source = LogFrames(reader.paths, config.io.allow_truncated, config.io.max_range_m)
+    own = engine is None
+    engine = Engine(workers=0, quiet=True, warmups=STAGE_WARMUPS) if engine is None else engine
+    try:
+        greys = dict(engine.map_frames(source, camera_topic, _GreyStage(frozenset(
+            p.camera_neighbour_stamp_ns for _, p in wanted)), ordered=True, desc="initialisation images",
+            log_times_ns=[p.camera_neighbour_log_ns for _, p in wanted]))
+    finally:
+        if own:
+            engine.close()
+    motions, lidar = [], []
+    for frame, pair in wanted:
+        other = greys.get(pair.camera_neighbour_stamp_ns)
+        if other is None:
+            continue
+        earlier = pair.camera_neighbour_stamp_ns < frame.stamp_ns
+        grey = np.asarray(frame.intensity, dtype=np.uint8)
+        motion = camera_motion(other, grey, frame.camera) if earlier else camera_motion(grey, other, frame.camera)
+        if motion is not None:
+            motions.append(motion)
+            lidar.append(twist_motion_T(frame.twist_at_camera(), abs(frame.stamp_ns - pair.camera_neighbour_stamp_ns)))
+    return motions, np.asarray(lidar).reshape(-1, 4, 4)
+
+
+def twist_motion_T(twist: NDArray[np.floating] | None, dt_ns: int) -> NDArray[np.float64]:
+    """``T_a_b`` (4, 4) of a body moving with ``twist`` (6,: m/s, rad/s, its own frame) for ``dt_ns``."""
+    w = np.zeros(6) if twist is None else np.asarray(twist, dtype=np.float64)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(w[3:] * dt_ns / 1e9).as_matrix()
+    T[:3, 3] = w[:3] * dt_ns / 1e9
+    return T
+
+
+def find_start(reader: LogReader, camera_topic: str, col: _Collected, frames: list[CalibrationFrame],
+               config: Config, solver: SolverConfig, engine: Engine | None = None) -> InitialGuess:
+    """A start without a guess: around the rotation the rig's motion gives (``motion_rotation``), else over the
+    whole rotation space (``search_initial_guess``), scored on at most ``SEARCH_FRAMES`` of ``frames``."""
+    motions, lidar_T = rig_motions(reader, camera_topic, col, config, engine)
+    rotation = motion_rotation(motions, lidar_T) if motions else None
+    index = np.unique(np.linspace(0, len(frames) - 1, min(len(frames), SEARCH_FRAMES)).round().astype(int))
+    guess = search_initial_guess([frames[i] for i in index], solver, rotation)
+    log.info("start from %s (%d camera motions%s): %d candidates, score %.4g, runner-up %.4g %.1f deg away%s",
+             guess.source, len(motions), "" if rotation is None or rotation.free_axis_lidar is None else
+             ", one axis free", guess.candidates, guess.score, guess.runner_up_score, guess.runner_up_deg,
+             ", ambiguous" if guess.ambiguous else "")
+    return guess
+
+
+def _searched_start(pairs: list[PairCalibration], guess: InitialGuess) -> None:
+    """Record a searched start on its pairs; an ambiguous one makes the verdict ``suspect``."""
+    for pair in pairs:
+        pair.initialisation, pair.initial_candidates = guess.source, guess.candidates
+        if guess.ambiguous:
+            pair.result = replace(pair.result, verdict="suspect", verdict_reason=(
+                f"the start is ambiguous: two starting rotations {guess.runner_up_deg:.0f} deg apart matched the "
+                "images alike; give a guess with --initial or calibrate from a log with more motion or structure"))
+
+
+def _start(reader: LogReader, topic: str, col: _Collected, frames: list[CalibrationFrame],
+           tf: tuple[TransformTree | None, str | None], initial: str | None, config: Config, solver: SolverConfig,
+           engine: Engine | None) -> tuple[Mat4, InitialGuess | None]:
+    """The start: ``--initial``, else the log's tf, else (or with ``--initial auto``) one found by
+    ``find_start``; a log whose tf is broken (``tf[1]``) and lacks the path fails instead of guessing."""
+    tree, problem = tf
+    if initial and initial != AUTO:
+        return parse_initial(initial), None
+    if initial != AUTO and tree is not None and tree.can_lookup(col.camera_frame, col.lidar_frame):
+        return initial_guess(tree, col.lidar_frame, col.camera_frame, None), None
+    if initial != AUTO and problem is not None:
+        path = (problem if tree is None else
+                f"the log's tf has no path from {col.lidar_frame!r} to {col.camera_frame!r} ({problem})")
+        raise InputError(f'no initial guess: {path}; give one with --initial "x y z roll pitch yaw" or search one '
+                         "with --initial auto")
+    guess = find_start(reader, topic, col, frames, config, solver, engine)
+    return guess.T_camera_lidar, guess
+
+
 def initial_guess(
     tree: TransformTree | None, lidar_frame: str, camera_frame: str, initial: str | None
 ) -> Mat4:
@@ -398,6 +510,19 @@ def initial_guess(
     )
 
 
+def _log_tf(reader: LogReader) -> tuple[TransformTree | None, str | None]:
+    """The log's tf tree (None where its edges are not a tree) and what is wrong with it (None: nothing)."""
+    check = check_tf(reader)
+    problem = check.bad_entries_text()
+    if problem:
+        log.warning("%s", problem)
+    if check.structure:
+        problem = f"the log's tf is not a tree: {'; '.join(check.structure)}"
+        log.warning("ignoring the log's tf (no ego-motion from it): %s", problem)
+        return None, problem
+    return check.tree, problem
+
+
 def run_calibration(
     reader: LogReader,
     lidar_topic: str,
@@ -410,13 +535,7 @@ def run_calibration(
 ) -> list[PairCalibration]:
     """Calibrate every camera against the lidar (pairwise) or the whole rig at once (``joint``); the per-frame
     work runs on ``engine`` (None: in process)."""
-    try:
-        tree: TransformTree | None = load_tf_tree(reader)
-    except InputError as err:
-        if not initial:
-            raise InputError(f'no initial guess: {err}; give one with --initial "x y z roll pitch yaw"') from err
-        log.warning("ignoring the log's tf (no motion compensation): %s", err)
-        tree = None
+    tree, tf_problem = _log_tf(reader)
     solver = solver_config(config)
     for topic in config.io.rectified_topics:
         if topic not in reader.topics:
@@ -425,19 +544,27 @@ def run_calibration(
     for topic in camera_topics:
         collected[topic] = collect_frames(reader, lidar_topic, topic, config, tree, engine)
     if joint and len(camera_topics) > 1:
-        results = _calibrate_joint(lidar_topic, camera_topics, collected, tree, initial, solver, quiet)
-    else:
-        results = []
-        for topic in camera_topics:
-            col = collected[topic]
-            T_init = initial_guess(tree, col.lidar_frame, col.camera_frame, initial)
-            _check_visible(col.frames, T_init, topic)
-            with search_progress(quiet) as progress:
-                result = calibrate(col.frames, T_init, solver, progress)
-            results.append(_pair(lidar_topic, topic, col, result, result.T_camera_lidar, T_init))
-    for pair in results:
-        pair.initialisation = "initial" if initial else "tf"
+        return _calibrate_joint(reader, lidar_topic, camera_topics, collected, (tree, tf_problem), initial, config,
+                                quiet, engine)
+    results = []
+    for topic in camera_topics:
+        col = collected[topic]
+        T_init, guess = _start(reader, topic, col, col.frames, (tree, tf_problem), initial, config, solver, engine)
+        _check_visible(col.frames, T_init, topic)
+        with search_progress(quiet) as progress:
+            result = calibrate(col.frames, T_init, solver, progress)
+        results.append(_pair(lidar_topic, topic, col, result, result.T_camera_lidar, T_init))
+        _initialised(results[-1:], initial, guess)
     return results
+
+
+def _initialised(pairs: list[PairCalibration], initial: str | None, guess: InitialGuess | None) -> None:
+    """Say where the pairs' start came from (``initialisation``)."""
+    if guess is not None:
+        _searched_start(pairs, guess)
+        return
+    for pair in pairs:
+        pair.initialisation = "initial" if initial else "tf"
 
 
 def _pair(
@@ -451,18 +578,21 @@ def _pair(
 
 
 def _calibrate_joint(
+    reader: LogReader,
     lidar_topic: str,
     camera_topics: list[str],
     collected: dict[str, _Collected],
-    tree: TransformTree | None,
+    tf: tuple[TransformTree | None, str | None],
     initial: str | None,
-    solver: SolverConfig,
+    config: Config,
     quiet: bool = False,
+    engine: Engine | None = None,
 ) -> list[PairCalibration]:
     """One unknown lidar pose for the whole rig: ``T_camera_k_lidar = T_camera_k_camera0 @ T_camera0_lidar``,
     the camera-to-camera transforms from the log's tf; camera0 is the first camera topic."""
     ref = collected[camera_topics[0]]
-    T_init = initial_guess(tree, ref.lidar_frame, ref.camera_frame, initial)
+    solver = solver_config(config)
+    tree = tf[0]
     frames: list[CalibrationFrame] = []
     T_cam_ref: dict[str, Mat4] = {}
     for topic in camera_topics:
@@ -473,13 +603,16 @@ def _calibrate_joint(
         for f in col.frames:
             f.T_camera_camera0 = T_cam_ref[topic]
             frames.append(f)
+    T_init, guess = _start(reader, camera_topics[0], ref, frames, tf, initial, config, solver, engine)
     with search_progress(quiet) as progress:
         result = calibrate(frames, T_init, solver, progress)
-    return [
+    pairs = [
         _pair(lidar_topic, topic, collected[topic], result, T_cam_ref[topic] @ result.T_camera_lidar,
               T_cam_ref[topic] @ T_init, ref.camera_frame)  # fmt: skip
         for topic in camera_topics
     ]
+    _initialised(pairs, initial, guess)
+    return pairs
 
 
 @contextmanager

@@ -32,7 +32,8 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--frames", type=int, metavar="N", help="paired frames spread over the log")
     p.add_argument("--search-deg", type=float, metavar="D", help="rotation search half-width, degrees")
     p.add_argument("--search-m", type=float, metavar="M", help="translation search half-width, metres")
-    p.add_argument("--initial", metavar='"x y z roll pitch yaw"', help="T_camera_lidar guess (m, deg)")
+    p.add_argument("--initial", metavar='"x y z roll pitch yaw" | auto',
+                   help='T_camera_lidar guess (m, deg); "auto": find one, as for a log without one')
     p.add_argument("--joint", action="store_true", help="all cameras at once (camera-camera tf from the log)")
     p.add_argument("--time-offset", choices=["fixed", "estimate"],
                    help="estimate the camera clock minus the lidar clock (needs a moving, turning rig)")

@@ -139,6 +139,13 @@ def add_simulation_arguments(parser: argparse.ArgumentParser, frames: int, size:
         metavar="M",
         help="lidar max range in m (default 100; 20 keeps the corridor's ends out of sight)",
     )
+    parser.add_argument("--camera-yaw", type=_float_range(-180.0, 180.0), default=0.0, metavar="DEG",
+                        help="every camera turned DEG degrees left of its usual direction (default 0)")
+    parser.add_argument("--camera-roll", type=_float_range(-180.0, 180.0), default=0.0, metavar="DEG",
+                        help="every camera rolled DEG degrees about its optical axis (default 0: upright)")
+    parser.add_argument("--no-tf-static", action="store_true",
+                        help="write no /tf_static (no mount of the lidar or the cameras): calibration then "
+                             "finds its own start")
     parser.add_argument("--no-odometry", action="store_true",
                         help="write no /tf odometry (odom -> base_link): calibration then moves the scans by "
                              "fleetcal's own odometry")
@@ -218,6 +225,9 @@ def options_from_args(args: argparse.Namespace) -> SimulationOptions:
         scene=args.scene,
         lidar=args.lidar,
         lidar_roll_deg=args.lidar_roll,
+        camera_yaw_deg=args.camera_yaw,
+        camera_roll_deg=args.camera_roll,
+        tf_static=not args.no_tf_static,
         **{name: value for name in ("beams", "columns") if (value := getattr(args, name)) is not None},
         cameras=args.cameras,
         fisheye=args.fisheye,

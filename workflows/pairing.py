@@ -117,7 +117,8 @@ def _select(pairs: list[tuple[int, int]], max_pairs: int | None) -> list[tuple[i
 class ChosenPair:
     """One lidar/camera pair chosen by header stamps, nothing decoded: each message's header stamp and log
     time, ns, and its index among its topic's messages; and the lidar scan next to it in the log (the one
-    before, or after for the first scan; -1 without one), whose motion to it gives the lidar's velocity."""
+    before, or after for the first scan; -1 without one), whose motion to it gives the lidar's velocity; and
+    likewise the image next to the camera's (whose motion to it gives the camera's)."""
 
     lidar_index: int
     camera_index: int
@@ -127,6 +128,8 @@ class ChosenPair:
     camera_log_ns: int
     neighbour_stamp_ns: int = -1
     neighbour_log_ns: int = -1
+    camera_neighbour_stamp_ns: int = -1
+    camera_neighbour_log_ns: int = -1
 
 
 def choose_pairs(
@@ -164,13 +167,19 @@ def choose_pairs(
             stats.unmatched_lidar, stats.lidar_frames, lidar_topic, camera_topic, tolerance_ns / 1e6,
         )  # fmt: skip
     lidar_stamps, lidar_times = stamps[lidar_topic], log_times[lidar_topic]
+    camera_stamps, camera_times = stamps[camera_topic], log_times[camera_topic]
     chosen = []
     for li, ci in _select(matched, max_pairs):
-        nb = li - 1 if li > 0 else (li + 1 if len(lidar_stamps) > 1 else -1)  # the scan before, or after the first
-        chosen.append(ChosenPair(li, ci, lidar_stamps[li], stamps[camera_topic][ci], lidar_times[li],
-                                 log_times[camera_topic][ci], lidar_stamps[nb] if nb >= 0 else -1,
-                                 lidar_times[nb] if nb >= 0 else -1))
+        nb, cn = _neighbour(li, len(lidar_stamps)), _neighbour(ci, len(camera_stamps))
+        chosen.append(ChosenPair(li, ci, lidar_stamps[li], camera_stamps[ci], lidar_times[li], camera_times[ci],
+                                 lidar_stamps[nb] if nb >= 0 else -1, lidar_times[nb] if nb >= 0 else -1,
+                                 camera_stamps[cn] if cn >= 0 else -1, camera_times[cn] if cn >= 0 else -1))
     return chosen
+
+
+def _neighbour(index: int, count: int) -> int:
+    """The message before ``index`` among ``count``, or after it for the first; -1 for a lone message."""
+    return index - 1 if index > 0 else (index + 1 if count > 1 else -1)
 
 
 def iter_pairs(

@@ -4,7 +4,7 @@ image gradients, ego-motion), and the per-frame work that builds them from decod
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -211,17 +211,23 @@ def camera_feature_stage(camera: CameraFrame, blur_sigma_px: float | None = None
     Raises:
         ProcessingError: the camera frame has no CameraModel (no CameraInfo in the log).
     """
-    import cv2
-
-    from fleetcal.stages.image_gradients import compute_image_gradients, to_grey_u8
+    from fleetcal.stages.image_gradients import compute_image_gradients
 
     if camera.camera is None:
         raise ProcessingError(f"camera {camera.topic} has no CameraInfo: intrinsics are unknown")
     sigma = default_blur_sigma_px(camera.width) if blur_sigma_px is None else blur_sigma_px
     grads = compute_image_gradients(camera.image, blur_sigma_px=sigma)
-    grey = np.asarray(cv2.equalizeHist(to_grey_u8(camera.image)), dtype=np.uint8)  # 1 byte a pixel
-    return CameraFeatures(camera.stamp_ns, camera.topic, camera.frame_id, camera.camera, grads, grey,
-                          camera.image if keep_image else None)
+    return CameraFeatures(camera.stamp_ns, camera.topic, camera.frame_id, camera.camera, grads,
+                          equalised_grey(camera.image), camera.image if keep_image else None)
+
+
+def equalised_grey(image: NDArray[Any]) -> NDArray[np.uint8]:
+    """(H, W) histogram-equalised grey, uint8, of a decoded image (grey or colour)."""
+    import cv2
+
+    from fleetcal.stages.image_gradients import to_grey_u8
+
+    return np.asarray(cv2.equalizeHist(to_grey_u8(image)), dtype=np.uint8)
 
 
 def join_frame(lidar: LidarFeatures, camera: CameraFeatures, T_camera_camera0: Mat4 | None = None,

@@ -247,6 +247,21 @@ class GomScorer:
 
     def score(self, T_camera_lidar_batch: NDArray[np.floating],
               focal_scale: NDArray[np.floating] | None = None) -> MetricBatch:
+        num, den, count = self._sums(T_camera_lidar_batch, focal_scale)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            gom = np.where(den > 0, num / (2.0 * den), 0.0)
+        return MetricBatch(np.asarray(gom), np.asarray(count))
+
+    def alignment(self, T_camera_lidar_batch: NDArray[np.floating]) -> NDArray[np.float64]:
+        """(P,) GOM's numerator above chance, ``sum mu cos 2(a - b)`` over the projected points (lidar times
+        image gradient magnitudes): large where many strong edges align. Unlike GOM it is not divided by the
+        weight seen, so a pose that sees a few aligned edges does not beat one that sees many."""
+        num, den, _ = self._sums(T_camera_lidar_batch, None)
+        return np.asarray(num - den)
+
+    def _sums(self, T_camera_lidar_batch: NDArray[np.floating], focal_scale: NDArray[np.floating] | None) -> tuple[
+            NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+        """The GOM kernel's numerator, denominator and projected-point count per pose."""
         poses = pose_batch(T_camera_lidar_batch)
         roll2 = np.zeros((poses.shape[0], 2))
         roll2[:, 0] = 1.0
@@ -257,9 +272,7 @@ class GomScorer:
         num, den, count = mk.gom_batch_kernel(self.points, self.c2, self.s2, self.magnitude, self.image.planes,
                                               self.image.mask, self.cam, poses, _focal(focal_scale, poses.shape[0]),
                                               roll2)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            gom = np.where(den > 0, num / (2.0 * den), 0.0)
-        return MetricBatch(np.asarray(gom), np.asarray(count))
+        return num, den, count
 
 
 class NmiScorer:

@@ -80,19 +80,23 @@ def perturb(
 
 
 def build_rig(cameras: int, lidar_height_m: float, perturb_deg: float, perturb_m: float, seed: int,
-              lidar_roll_deg: float = 0.0) -> Rig:
+              lidar_roll_deg: float = 0.0, camera_yaw_deg: float = 0.0, camera_roll_deg: float = 0.0) -> Rig:
     """Lidar on the roof, rolled ``lidar_roll_deg`` about its forward (x) axis (0: level); camera i looks
-    along ``CAMERA_YAWS_DEG[i]``, 0.3 m out from the lidar and 0.35 m below it, pitched about 4 deg down with
-    small seeded mounting errors."""
+    along ``CAMERA_YAWS_DEG[i]`` plus ``camera_yaw_deg`` (left positive), 0.3 m out from the lidar and 0.35 m
+    below it, pitched about 4 deg down, rolled ``camera_roll_deg`` about its optical axis, with small seeded
+    mounting errors."""
     if not 1 <= cameras <= MAX_CAMERAS:
         raise ConfigError(f"cameras must be 1..{MAX_CAMERAS}, got {cameras}")
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x716]))
     T_base_lidar = from_xyz_rpy(0.1, 0.0, lidar_height_m, lidar_roll_deg, 0.0, 0.0)
     T_base_cameras = []
     for i in range(cameras):
-        yaw = CAMERA_YAWS_DEG[i]
+        yaw = CAMERA_YAWS_DEG[i] + camera_yaw_deg
         roll_err, pitch_err, yaw_err = rng.uniform(-1.0, 1.0, size=3)
         R_mount = Rotation.from_euler("xyz", [roll_err, 4.0 + pitch_err, yaw + yaw_err], degrees=True).as_matrix()
+        if camera_roll_deg:
+            R_mount = R_mount @ R_BASE_OPTICAL @ Rotation.from_euler("z", camera_roll_deg, degrees=True).as_matrix() \
+                @ R_BASE_OPTICAL.T
         offset = np.array([0.3 * np.cos(np.radians(yaw)), 0.3 * np.sin(np.radians(yaw)), -0.35])
         T_base_cameras.append(make_T(R_mount @ R_BASE_OPTICAL, T_base_lidar[:3, 3] + offset))
     cams = np.stack(T_base_cameras)

@@ -86,6 +86,9 @@ class SimulationOptions:
     non-repetitive Livox-like lidar: ``beams`` laser lines, 1..16, x ``columns`` samples per scan;
     ``workflows.simulator.lidar``); a rosette scan has no organised form. ``lidar_roll_deg``: the lidar
     mounted rolled about its forward axis (its rings then cross the forward camera's image slanted).
+    ``camera_yaw_deg`` / ``camera_roll_deg``: every camera turned left by that much / rolled about its optical
+    axis. ``tf_static`` False: no ``/tf_static`` (neither the lidar's mount nor the cameras'; the truth file
+    still has them).
     ``beams`` / ``columns`` 0 (default): the pattern's (``DEFAULT_LAYOUT``: 64 x 1024 spinning, 6 x 4000
     rosette), filled in on construction. ``odometry`` False: no ``/tf`` odometry is written (a raw sensor
     log; the truth file still has the trajectory).
@@ -119,7 +122,10 @@ class SimulationOptions:
     max_range_m: float = 100.0
     lidar: str = "spinning"
     lidar_roll_deg: float = 0.0
+    camera_yaw_deg: float = 0.0
+    camera_roll_deg: float = 0.0
     odometry: bool = True
+    tf_static: bool = True
     time_offset_ms: float = 0.0
     readout_ms: float = 0.0
 
@@ -155,6 +161,8 @@ class SimulationOptions:
                 np.isfinite(self.lidar_roll_deg) and -180 <= self.lidar_roll_deg <= 180,
                 f"lidar-roll must be in -180..180 degrees, got {self.lidar_roll_deg}",
             ),
+            *[(np.isfinite(angle) and -180 <= angle <= 180, f"{name} must be in -180..180 degrees, got {angle}")
+              for name, angle in (("camera-yaw", self.camera_yaw_deg), ("camera-roll", self.camera_roll_deg))],
             (64 <= self.columns <= 4096, f"columns must be in 64..4096, got {self.columns}"),
             (1 <= self.cameras <= MAX_CAMERAS, f"cameras must be in 1..{MAX_CAMERAS}, got {self.cameras}"),
             (
@@ -269,7 +277,8 @@ def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet:
     grid = build_grid(scene.triangles)
     motion = LoopMotion(scene.route, opts.speed)
     rig = build_rig(opts.cameras, scene.lidar_height_m, opts.perturb_deg, opts.perturb_m, opts.seed,
-                    lidar_roll_deg=opts.lidar_roll_deg)
+                    lidar_roll_deg=opts.lidar_roll_deg, camera_yaw_deg=opts.camera_yaw_deg,
+                    camera_roll_deg=opts.camera_roll_deg)
     lidar = LidarModel(
         beams=opts.beams,
         columns=opts.columns,
@@ -296,7 +305,7 @@ def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet:
     T_lidar0_world = invert(T_world_lidar0)
 
     # (log_time_ns, order, kind, index, sub) -- order breaks ties deterministically
-    events: list[tuple[int, int, str, int, int]] = [(START_NS, 0, "tf_static", 0, 0)]
+    events: list[tuple[int, int, str, int, int]] = [(START_NS, 0, "tf_static", 0, 0)] if opts.tf_static else []
     tf_stamps = set(range(START_NS, scans[-1] + round(1e9 / opts.lidar_rate_hz) + 1, TF_PERIOD_NS))
     tf_stamps.update(scans)
     for cam_stamps in images:
