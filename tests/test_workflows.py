@@ -37,7 +37,7 @@ CALIBRATION_COLUMNS = {
     "runtime_s": pa.float64(), "verdict": pa.string(), "verdict_reason": pa.string(),
     "std_rx_deg": pa.float64(), "std_ry_deg": pa.float64(), "std_rz_deg": pa.float64(),
     "std_tx_m": pa.float64(), "std_ty_m": pa.float64(), "std_tz_m": pa.float64(), "initialisation": pa.string(),
-    "time_offset_s": pa.float64(), "time_offset_std_s": pa.float64(), "readout_s": pa.float64(),
+    "initial_candidates": pa.int64(), "time_offset_s": pa.float64(), "time_offset_std_s": pa.float64(), "readout_s": pa.float64(),
     "readout_std_s": pa.float64(), "motion_source": pa.string(),
 }  # fmt: skip
 TRAJECTORY_COLUMNS = {
@@ -84,6 +84,7 @@ def test_parquet_contract(processed: Path) -> None:
     assert len(calib) == 1 and calib.loc[0, "frames_used"] == 3
     result = json.loads((processed / "result.json").read_text())["calibrations"][0]
     assert calib.loc[0, "verdict"] == result["verdict"] and calib.loc[0, "initialisation"] == "tf"
+    assert calib.loc[0, "initial_candidates"] == 0
     stds = calib.loc[0, ["std_rx_deg", "std_ry_deg", "std_rz_deg", "std_tx_m", "std_ty_m", "std_tz_m"]]
     assert np.all(stds.to_numpy(dtype=float) > 0)  # at least the scan's sampling cell
     assert np.isnan(calib.loc[0, "time_offset_s"]) and calib.loc[0, "motion_source"] in ("tf", "none")

@@ -49,7 +49,8 @@ def calibrate(
     """Calibrate ``T_camera_lidar`` for every camera; one ``PairCalibration`` per lidar/camera pair.
 
     Topics left out are detected as ``fleetcal inspect`` does; ``initial`` is ``"x y z roll pitch yaw"``
-    (metres, degrees) and overrides the log's tf.
+    (metres, degrees) and overrides the log's tf, or ``"auto"``: a start found from the rig's motion or a
+    search, as for a log without a lidar-camera tf.
     """
     paths = _paths(logs)
     config = _config(settings)

@@ -654,7 +654,8 @@ def calibration_rows(pairs: list[PairCalibration], feature: str) -> list[dict[st
             "initial_score": p.result.initial_score, "frames_used": p.result.frames_used,
             "runtime_s": p.result.runtime_s, "verdict": p.result.verdict, "verdict_reason": p.result.verdict_reason,
             **dict(zip(STD_COLUMNS, np.concatenate(p.axis_deviations()).tolist(), strict=True)),
-            "initialisation": p.initialisation, **p.timing(), "motion_source": p.motion_source,
+            "initialisation": p.initialisation, "initial_candidates": p.initial_candidates, **p.timing(),
+            "motion_source": p.motion_source,
         })  # fmt: skip
     return rows
 

@@ -244,6 +244,13 @@ def _distinct(rotations: NDArray[np.float64], scores: NDArray[np.float64], separ
     return chosen
 
 
+def _outside_box(R: NDArray[np.float64], R_centre: NDArray[np.float64], half_deg: float) -> bool:
+    """Whether ``R`` lies outside the calibration's rotation box (rotation vector components within
+    +-``half_deg``, camera frame) around ``R_centre``."""
+    turn = Rotation.from_matrix(R @ R_centre.T).as_rotvec(degrees=True)
+    return bool(np.max(np.abs(turn)) > half_deg)
+
+
 def _angle_deg(R_a: NDArray[np.float64], R_b: NDArray[np.float64]) -> float:
     cos = (np.trace(R_a @ R_b.T) - 1.0) / 2.0
     return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
@@ -288,8 +295,9 @@ def search_initial_guess(frames: list[CalibrationFrame], config: CalibrationConf
                          motion: HandEyeRotation | None = None,
                          translation_m: NDArray[np.floating] | None = None) -> InitialGuess:
     """Find a starting extrinsic: score candidate rotations, polish the ``POLISHED`` best distinct ones and
-    return the best, ambiguous where one further than the calibration's box (``config.search_deg``, which
-    the search from the start resolves) scores alike. Candidates: around ``motion``'s rotation
+    return the best (an error where even it matches the images no better than chance: its alignment on the
+    image bands within two standard errors of zero), ambiguous where one outside the calibration's box around it (``config.search_deg``,
+    which the search from the start covers) scores alike. Candidates: around ``motion``'s rotation
     (``MOTION_STEP_DEG`` apart), all along its free axis if it has one; without it, the whole rotation space
     (``CELL_DEG`` / ``STEP_DEG``).
 
@@ -308,7 +316,10 @@ def search_initial_guess(frames: list[CalibrationFrame], config: CalibrationConf
                               "(too little structure in view); give a guess with --initial")
     polished = sorted((_polish(preps, R_all[i], t, step_deg, config) for i in best), key=lambda p: -p.score)
     top = polished[0]
-    others = [p for p in polished[1:] if _angle_deg(p.R, top.R) > max(2.0 * step_deg, config.search_deg)]
+    if scores_alike(top.bands):
+        raise ProcessingError("no starting pose found: at no rotation do the lidar's edges meet image edges "
+                              "better than by chance (too little structure in view); give a guess with --initial")
+    others = [p for p in polished[1:] if _outside_box(p.R, top.R, max(2.0 * step_deg, config.search_deg))]
     runner = others[0] if others else None
     ambiguous = runner is not None and scores_alike(top.bands - runner.bands)
     return InitialGuess(

@@ -52,6 +52,7 @@ CALIBRATION_SCHEMA = pa.schema(
         ("verdict_reason", pa.string()),
         *[(name, pa.float64()) for name in STD_COLUMNS],
         ("initialisation", pa.string()),
+        ("initial_candidates", pa.int64()),
         ("time_offset_s", pa.float64()),
         ("time_offset_std_s", pa.float64()),
         ("readout_s", pa.float64()),
@@ -61,7 +62,8 @@ CALIBRATION_SCHEMA = pa.schema(
 )
 """One row per lidar/camera pair: the extrinsic, its scores and verdict, per-axis standard deviations in the
 camera's axes (rotation degrees, translation metres), where the initial guess came from (``tf``,
-``initial``), and the clock terms (NaN where not estimated) and the ego-motion source (``tf``, ``odometry``,
+``initial``, ``motion`` or ``search``) with the starting poses a motion or search initialisation scored (0
+otherwise), and the clock terms (NaN where not estimated) and the ego-motion source (``tf``, ``odometry``,
 ``none``)."""
 
 FRAMES_SCHEMA = pa.schema(
