@@ -105,6 +105,7 @@ class PairCalibration:
             "camera_frame": self.camera_frame,
             "metric": self.result.metric,
             "T_camera_lidar": self.T_camera_lidar.tolist(),
+            "T_camera_lidar_initial": self.T_camera_lidar_initial.tolist(),
             "translation_m": t.tolist(),
             "quaternion_xyzw": q.tolist(),
             "rpy_deg": to_rpy_deg(self.T_camera_lidar).tolist(),

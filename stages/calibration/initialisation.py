@@ -46,6 +46,9 @@ POINTS_PER_FRAME = 3000
 POLISHED = 4
 MOTION_STEP_DEG = 1.5
 """Spacing of the candidates around a rotation found from motion (its error is a degree or two)."""
+MOTION_HALF_DEG = 4.5
+"""Half-width of the candidates around a whole rotation from motion: three times the largest deviation
+``hand_eye.motion_rotation`` calls determined (1.5 deg)."""
 MOTION_CELL_DEG = 15.0
 """Spacing along a free axis of the rotations whose lidar gradients are computed."""
 """Distinct candidates polished and compared."""
@@ -296,10 +299,11 @@ def search_initial_guess(frames: list[CalibrationFrame], config: CalibrationConf
                          translation_m: NDArray[np.floating] | None = None) -> InitialGuess:
     """Find a starting extrinsic: score candidate rotations, polish the ``POLISHED`` best distinct ones and
     return the best (an error where even it matches the images no better than chance: its alignment on the
-    image bands within two standard errors of zero), ambiguous where one outside the calibration's box around it (``config.search_deg``,
-    which the search from the start covers) scores alike. Candidates: around ``motion``'s rotation
-    (``MOTION_STEP_DEG`` apart), all along its free axis if it has one; without it, the whole rotation space
-    (``CELL_DEG`` / ``STEP_DEG``).
+    image bands within two standard errors of zero), ambiguous where one outside the calibration's box around
+    it (``config.search_deg``, which the search from the start covers) scores alike; around a whole rotation
+    from motion, every candidate within the region it allows is the same answer. Candidates: around
+    ``motion``'s rotation (``MOTION_STEP_DEG`` apart), all along its free axis if it has one; without it, the
+    whole rotation space (``CELL_DEG`` / ``STEP_DEG``).
 
     Raises:
         ProcessingError: no candidate sees enough scene structure (no frame, no lidar gradient in view).
@@ -308,6 +312,9 @@ def search_initial_guess(frames: list[CalibrationFrame], config: CalibrationConf
         raise ProcessingError("no paired lidar/camera frames to search a start from")
     t = np.zeros(3) if translation_m is None else np.asarray(translation_m, dtype=np.float64).reshape(3)
     bases, turns, step_deg, reach_deg = _candidates(motion)
+    apart_deg = max(2.0 * step_deg, config.search_deg)  # beyond the calibration's box around the best
+    if motion is not None and motion.free_axis_lidar is None:
+        apart_deg = max(apart_deg, 2.0 * MOTION_HALF_DEG)  # the whole region motion allows is one answer
     preps = [_prepare(f, step_deg, config.sphere_k) for f in frames]
     R_all, scores = _grid_scores(preps, bases, turns, t, reach_deg, config)
     best = _distinct(R_all, scores, 2.0 * step_deg, POLISHED)
@@ -319,7 +326,7 @@ def search_initial_guess(frames: list[CalibrationFrame], config: CalibrationConf
     if scores_alike(top.bands):
         raise ProcessingError("no starting pose found: at no rotation do the lidar's edges meet image edges "
                               "better than by chance (too little structure in view); give a guess with --initial")
-    others = [p for p in polished[1:] if _outside_box(p.R, top.R, max(2.0 * step_deg, config.search_deg))]
+    others = [p for p in polished[1:] if _outside_box(p.R, top.R, apart_deg)]
     runner = others[0] if others else None
     ambiguous = runner is not None and scores_alike(top.bands - runner.bands)
     return InitialGuess(
@@ -337,8 +344,8 @@ def _candidates(motion: HandEyeRotation | None) -> tuple[NDArray[np.float64], ND
         return bases, local_turns(CELL_DEG / 2.0, STEP_DEG, full_roll=True), STEP_DEG, CELL_DEG / 2.0 + STEP_DEG
     R = np.asarray(motion.R_camera_lidar, dtype=np.float64)
     if motion.free_axis_lidar is None:
-        half = 3.0 * MOTION_STEP_DEG
-        return R[None], local_turns(half, MOTION_STEP_DEG, full_roll=False), MOTION_STEP_DEG, half + MOTION_STEP_DEG
+        turns = local_turns(MOTION_HALF_DEG, MOTION_STEP_DEG, full_roll=False)
+        return R[None], turns, MOTION_STEP_DEG, MOTION_HALF_DEG + MOTION_STEP_DEG
     bases = rotations_about(R, motion.free_axis_lidar, round(360.0 / MOTION_CELL_DEG))
     turns = axis_turns(R @ motion.free_axis_lidar, MOTION_CELL_DEG / 2.0, MOTION_STEP_DEG)
     return bases, turns, MOTION_STEP_DEG, MOTION_CELL_DEG / 2.0 + MOTION_STEP_DEG
