@@ -37,8 +37,8 @@ CALIBRATION_COLUMNS = {
     "runtime_s": pa.float64(), "verdict": pa.string(), "verdict_reason": pa.string(),
     "std_rx_deg": pa.float64(), "std_ry_deg": pa.float64(), "std_rz_deg": pa.float64(),
     "std_tx_m": pa.float64(), "std_ty_m": pa.float64(), "std_tz_m": pa.float64(), "initialisation": pa.string(),
-    "initial_candidates": pa.int64(), "time_offset_s": pa.float64(), "time_offset_std_s": pa.float64(), "readout_s": pa.float64(),
-    "readout_std_s": pa.float64(), "motion_source": pa.string(),
+    "initial_candidates": pa.int64(), "time_offset_s": pa.float64(), "time_offset_std_s": pa.float64(),
+    "readout_s": pa.float64(), "readout_std_s": pa.float64(), "motion_source": pa.string(),
 }  # fmt: skip
 TRAJECTORY_COLUMNS = {
     "stamp_ns": pa.int64(), "tx_m": pa.float64(), "ty_m": pa.float64(), "tz_m": pa.float64(),
