@@ -452,13 +452,18 @@ def twist_motion_T(twist: NDArray[np.floating] | None, dt_ns: int) -> NDArray[np
 
 
 def find_start(reader: LogReader, camera_topic: str, col: _Collected, frames: list[CalibrationFrame],
-               config: Config, solver: SolverConfig, engine: Engine | None = None) -> InitialGuess:
+               config: Config, solver: SolverConfig, engine: Engine | None = None,
+               quiet: bool = True) -> InitialGuess:
     """A start without a guess: around the rotation the rig's motion gives (``motion_rotation``), else over the
     whole rotation space (``search_initial_guess``), scored on at most ``SEARCH_FRAMES`` of ``frames``."""
     motions, lidar_T = rig_motions(reader, camera_topic, col, config, engine)
     rotation = motion_rotation(motions, lidar_T) if motions else None
     index = np.unique(np.linspace(0, len(frames) - 1, min(len(frames), SEARCH_FRAMES)).round().astype(int))
-    guess = search_initial_guess([frames[i] for i in index], solver, rotation)
+    with Progress(total=100, desc=f"start search ({'motion' if rotation is not None else 'all rotations'})",
+                  quiet=quiet, unit="%", line_interval_s=1.0) as bar:
+        guess = search_initial_guess([frames[i] for i in index], solver, rotation,
+                                     progress=lambda done: bar.update(int(100 * done) - bar.done))
+        bar.update(100 - bar.done)
     log.info("start from %s (%d camera motions%s): %d candidates, score %.4g, runner-up %.4g %.1f deg away%s",
              guess.source, len(motions), "" if rotation is None or rotation.free_axis_lidar is None else
              ", one axis free", guess.candidates, guess.score, guess.runner_up_score, guess.runner_up_deg,
@@ -478,7 +483,7 @@ def _searched_start(pairs: list[PairCalibration], guess: InitialGuess) -> None:
 
 def _start(reader: LogReader, topic: str, col: _Collected, frames: list[CalibrationFrame],
            tf: tuple[TransformTree | None, str | None], initial: str | None, config: Config, solver: SolverConfig,
-           engine: Engine | None) -> tuple[Mat4, InitialGuess | None]:
+           engine: Engine | None, quiet: bool = True) -> tuple[Mat4, InitialGuess | None]:
     """The start: ``--initial``, else the log's tf, else (or with ``--initial auto``) one found by
     ``find_start``; a log whose tf is broken (``tf[1]``) and lacks the path fails instead of guessing."""
     tree, problem = tf
@@ -491,7 +496,7 @@ def _start(reader: LogReader, topic: str, col: _Collected, frames: list[Calibrat
                 f"the log's tf has no path from {col.lidar_frame!r} to {col.camera_frame!r} ({problem})")
         raise InputError(f'no initial guess: {path}; give one with --initial "x y z roll pitch yaw" or search one '
                          "with --initial auto")
-    guess = find_start(reader, topic, col, frames, config, solver, engine)
+    guess = find_start(reader, topic, col, frames, config, solver, engine, quiet)
     return guess.T_camera_lidar, guess
 
 
@@ -550,7 +555,8 @@ def run_calibration(
     results = []
     for topic in camera_topics:
         col = collected[topic]
-        T_init, guess = _start(reader, topic, col, col.frames, (tree, tf_problem), initial, config, solver, engine)
+        T_init, guess = _start(reader, topic, col, col.frames, (tree, tf_problem), initial, config, solver, engine,
+                               quiet)
         _check_visible(col.frames, T_init, topic)
         with search_progress(quiet) as progress:
             result = calibrate(col.frames, T_init, solver, progress)
@@ -604,7 +610,7 @@ def _calibrate_joint(
         for f in col.frames:
             f.T_camera_camera0 = T_cam_ref[topic]
             frames.append(f)
-    T_init, guess = _start(reader, camera_topics[0], ref, frames, tf, initial, config, solver, engine)
+    T_init, guess = _start(reader, camera_topics[0], ref, frames, tf, initial, config, solver, engine, quiet)
     with search_progress(quiet) as progress:
         result = calibrate(frames, T_init, solver, progress)
     pairs = [

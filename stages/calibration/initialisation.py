@@ -19,7 +19,7 @@ polished candidate does not score clearly above a distant runner-up, the start i
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -222,11 +222,14 @@ def _poses(R: NDArray[np.float64], translation_m: NDArray[np.float64]) -> NDArra
 
 
 def _grid_scores(preps: list[_FramePrep], bases: NDArray[np.float64], turns: NDArray[np.float64],
-                 translation_m: NDArray[np.float64], reach_deg: float, config: CalibrationConfig) -> tuple[
-                     NDArray[np.float64], NDArray[np.float64]]:
-    """Rotations (B * M, 3, 3) ``turns @ base`` for every base rotation and their coarse scores."""
+                 translation_m: NDArray[np.float64], reach_deg: float, config: CalibrationConfig,
+                 progress: Callable[[float], None] | None = None) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Rotations (B * M, 3, 3) ``turns @ base`` for every base rotation and their coarse scores; ``progress``
+    is told the fraction of bases done."""
     rotations, scores = [], []
-    for R_base in bases:
+    for k, R_base in enumerate(bases):
+        if progress is not None:
+            progress(k / len(bases))
         T_base = _poses(R_base[None], translation_m)[0]
         scorers = [_scorer(p, T_base, reach_deg, config.keep_fraction) for p in preps]
         R = turns @ R_base
@@ -296,14 +299,16 @@ def _band_scores(scorers: Sequence[GomScorer | None], preps: Sequence[_FramePrep
 
 def search_initial_guess(frames: list[CalibrationFrame], config: CalibrationConfig,
                          motion: HandEyeRotation | None = None,
-                         translation_m: NDArray[np.floating] | None = None) -> InitialGuess:
-    """Find a starting extrinsic: score candidate rotations, polish the ``POLISHED`` best distinct ones and
-    return the best (an error where even it matches the images no better than chance: its alignment on the
-    image bands within two standard errors of zero), ambiguous where one outside the calibration's box around
-    it (``config.search_deg``, which the search from the start covers) scores alike; around a whole rotation
-    from motion, every candidate within the region it allows is the same answer. Candidates: around
-    ``motion``'s rotation (``MOTION_STEP_DEG`` apart), all along its free axis if it has one; without it, the
-    whole rotation space (``CELL_DEG`` / ``STEP_DEG``).
+                         translation_m: NDArray[np.floating] | None = None,
+                         progress: Callable[[float], None] | None = None) -> InitialGuess:
+    """Find a starting extrinsic (``progress``: told the fraction of candidates scored): score candidate
+    rotations, polish the ``POLISHED`` best distinct ones and return the best. It is an error where even the
+    best matches the images no better than chance (its alignment on the image bands within two standard
+    errors of zero), and ambiguous where one outside the calibration's box around it (``config.search_deg``,
+    which the search from the start covers) scores alike; around a whole rotation from motion, every
+    candidate within the region it allows is the same answer. Candidates: around ``motion``'s rotation
+    (``MOTION_STEP_DEG`` apart), all along its free axis if it has one; without it, the whole rotation space
+    (``CELL_DEG`` / ``STEP_DEG``).
 
     Raises:
         ProcessingError: no candidate sees enough scene structure (no frame, no lidar gradient in view).
@@ -316,7 +321,7 @@ def search_initial_guess(frames: list[CalibrationFrame], config: CalibrationConf
     if motion is not None and motion.free_axis_lidar is None:
         apart_deg = max(apart_deg, 2.0 * MOTION_HALF_DEG)  # the whole region motion allows is one answer
     preps = [_prepare(f, step_deg, config.sphere_k) for f in frames]
-    R_all, scores = _grid_scores(preps, bases, turns, t, reach_deg, config)
+    R_all, scores = _grid_scores(preps, bases, turns, t, reach_deg, config, progress)
     best = _distinct(R_all, scores, 2.0 * step_deg, POLISHED)
     if not best:
         raise ProcessingError("no starting pose found: at no rotation do the lidar's edges meet image edges "
