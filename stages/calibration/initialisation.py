@@ -271,17 +271,21 @@ class _Polished:
 
 def _polish(preps: list[_FramePrep], R_start: NDArray[np.float64], translation_m: NDArray[np.float64],
             step_deg: float, config: CalibrationConfig) -> _Polished:
-    """Compass search of the rotation from ``R_start`` (gradients seen from there), then its band scores."""
+    """Compass search from ``R_start`` (gradients seen from there) of the rotation, with the translation free
+    within the calibration's box (``config.search_m``) so that the rotation does not turn to make up for a
+    near scene's parallax; the rotation is kept, at ``translation_m``, with its band scores."""
     T_start = _poses(R_start[None], translation_m)[0]
     scorers = [_scorer(p, T_start, step_deg, config.keep_fraction) for p in preps]
 
     def objective(z: NDArray[np.floating]) -> NDArray[np.float64]:
-        turns = Rotation.from_rotvec(np.atleast_2d(z), degrees=True).as_matrix()
-        return _score(scorers, _poses(turns @ R_start, translation_m), preps)
+        z = np.atleast_2d(z)
+        T = _poses(Rotation.from_rotvec(z[:, :3], degrees=True).as_matrix() @ R_start, translation_m)
+        T[:, :3, 3] += z[:, 3:]
+        return _score(scorers, T, preps)
 
-    half = np.full(3, step_deg)
-    result = pattern_search(objective, np.zeros(3), half / 2.0, -half, half, min_step_fraction=0.05)
-    R = Rotation.from_rotvec(result.best_x, degrees=True).as_matrix() @ R_start
+    half = np.array([step_deg] * 3 + [config.search_m] * 3)
+    result = pattern_search(objective, np.zeros(6), half / 2.0, -half, half, min_step_fraction=0.05)
+    R = Rotation.from_rotvec(result.best_x[:3], degrees=True).as_matrix() @ R_start
     return _Polished(R, float(result.best_score), _band_scores(scorers, preps, _poses(R[None], translation_m)[0]))
 
 
