@@ -1,17 +1,19 @@
-"""Lidar-camera extrinsic from motion (hand-eye calibration, ``A X = X B``).
+"""Lidar-camera rotation from motion (hand-eye calibration, ``A X = X B``).
 
 Over one time interval the camera moves by ``T_A = T_ca_cb`` (pose of the camera at time b in the
 camera at time a) and the lidar by ``T_B = T_la_lb``. With the unknown ``T_X = T_camera_lidar``
 (``p_camera = T_X @ p_lidar``), ``T_A = T_X T_B T_X^-1``, so
 
 - rotation: ``R_A R_X = R_X R_B``, i.e. ``rotvec(R_A) = R_X @ rotvec(R_B)``;
-- translation: ``R_A t_X + t_A = R_X t_B + t_X``, i.e. ``(R_A - I) t_X + s u = R_X t_B``, where the
-  camera's translation ``t_A = s u`` is known from images only as a direction ``u`` (``s > 0``).
+- translation: ``R_A t_X + t_A = R_X t_B + t_X``: the camera travels along ``R_X t_B`` up to the lever arm
+  ``(I - R_A) t_X``, known from images only as a direction ``u``.
 
-``camera_motion`` measures ``R_A`` and ``u`` from two images, ``hand_eye_rotation`` solves ``R_X``
-from rotation pairs, ``hand_eye_translation`` solves ``t_X`` given ``R_X``. Rotations about an
-axis shared by every interval (a ground vehicle that only yaws) leave ``R_X`` free about that
-axis and ``t_X`` free along it; both results report what is free instead of inventing a value.
+``camera_motion`` measures ``R_A`` and ``u`` from two images; ``motion_rotation`` solves ``R_X`` from both
+(rotation axes and directions of travel). Motion about and along one axis only (a straight drive) leaves
+``R_X`` free about it, which the result reports instead of inventing a value. The translation ``t_X`` is
+not solved: from a car's motion only its component along the travel shows, as a change of the travel's
+direction by ``|R_A - I| |t_X| / |t_B|`` (about 2 cm in 0.8 m on a simulated drive), below the directions'
+noise; solved, it came out 0.4 m off (``docs/accuracy.md``).
 """
 
 from __future__ import annotations
@@ -60,18 +62,18 @@ class CameraMotion:
 
 @dataclass(frozen=True)
 class HandEyeRotation:
-    """Rotation ``R_camera_lidar`` from paired interval rotations.
+    """Rotation ``R_camera_lidar`` from motion (``motion_rotation``).
 
     Attributes:
         R_camera_lidar: (3, 3) rotation of ``T_camera_lidar``. When ``free_axis_lidar`` is set, the
             rotation about that axis is arbitrary (see ``rotations_about``).
-        pairs_used: pairs whose lidar rotation was large enough to use.
-        residual_deg: RMS over the used pairs of ``|rotvec_camera - R_camera_lidar @ rotvec_lidar|``,
-            degrees (about the angle of the rotation left unexplained per interval).
-        free_angle_std_deg: standard deviation of the rotation about the lidar rotations' dominant
-            axis, degrees (noise over the excitation perpendicular to it); inf when nothing excites it.
+        pairs_used: vector pairs used (rotation axes of intervals that turned enough, directions of travel).
+        residual_deg: weighted RMS angle between each camera vector and its lidar vector turned by
+            ``R_camera_lidar``, degrees.
+        free_angle_std_deg: standard deviation of the rotation about the lidar vectors' dominant direction,
+            degrees; inf when nothing fixes it.
         free_axis_lidar: (3,) unit axis in the lidar frame (sign arbitrary) about which the rotation is
-            not determined (all lidar rotations nearly parallel to it); None when fully determined.
+            not determined (every lidar vector nearly parallel to it); None when fully determined.
     """
 
     R_camera_lidar: FloatArray
@@ -79,30 +81,6 @@ class HandEyeRotation:
     residual_deg: float
     free_angle_std_deg: float
     free_axis_lidar: FloatArray | None
-
-
-@dataclass(frozen=True)
-class HandEyeTranslation:
-    """Translation of ``T_camera_lidar`` from camera motion directions and lidar motions.
-
-    Attributes:
-        translation_m: (3,) translation of ``T_camera_lidar`` (lidar origin in the camera frame), metres;
-            zero along each of ``free_directions_camera``.
-        std_m: (3,) standard deviation per camera axis, metres, from the least-squares covariance
-            scaled by the residual, with the free directions held fixed; inf on an unobservable axis.
-        observable: (3,) per camera axis, False when the axis lies within 60 deg of a free direction.
-        free_directions_camera: (k, 3) unit directions in the camera frame along which the motion
-            gives no information (k = 0 for motion that rotates about several axes).
-        scales_m: (pairs_used,) camera travel per used pair, metres.
-        pairs_used: pairs in the solution (a pair with a non-positive travel is dropped).
-    """
-
-    translation_m: FloatArray
-    std_m: FloatArray
-    observable: NDArray[np.bool_]
-    free_directions_camera: FloatArray
-    scales_m: FloatArray
-    pairs_used: int
 
 
 def kabsch(source: FloatArray, target: FloatArray, weights: FloatArray | None = None) -> FloatArray:
@@ -221,65 +199,6 @@ def camera_motion(grey_a: NDArray[np.uint8], grey_b: NDArray[np.uint8], camera: 
     return CameraMotion(np.asarray(R_b_a.T), None, inliers, parallax_px, translation_px)
 
 
-def _check_pairs(camera_rotvecs: NDArray[np.floating], lidar_rotvecs: NDArray[np.floating],
-                 weights: NDArray[np.floating] | None) -> tuple[FloatArray, FloatArray, FloatArray]:
-    a = np.asarray(camera_rotvecs, dtype=np.float64).reshape(-1, 3)
-    b = np.asarray(lidar_rotvecs, dtype=np.float64).reshape(-1, 3)
-    w = np.ones(len(a)) if weights is None else np.asarray(weights, dtype=np.float64).ravel()
-    if a.shape != b.shape or w.shape != (len(a),):
-        raise InputError(f"hand-eye pairs need (N, 3) rotations and (N,) weights, got {a.shape}, {b.shape}, "
-                         f"{w.shape}")
-    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b)) and np.all(np.isfinite(w)) and np.all(w >= 0)):
-        raise InputError("hand-eye rotations must be finite and weights finite and non-negative")
-    return a, b, w
-
-
-def hand_eye_rotation(camera_rotvecs: NDArray[np.floating], lidar_rotvecs: NDArray[np.floating],
-                      weights: NDArray[np.floating] | None = None, noise_deg: float = 0.1,
-                      max_free_std_deg: float = 1.0) -> HandEyeRotation | None:
-    """``R_camera_lidar`` from interval rotations, ``rotvec_camera = R_camera_lidar @ rotvec_lidar``.
-
-    Weighted Kabsch on the rotation vectors (radians): a pair counts in proportion to its angle, since
-    a rotation vector's noise does not grow with it. Pairs whose lidar angle is below ``5 noise_deg``
-    are left out: their axis is uncertain by more than about 11 deg.
-
-    The rotation about the dominant axis of the lidar rotations (top eigenvector of the weighted
-    scatter ``S = sum w b b^T``) is constrained only by the rotation perpendicular to it, so its
-    standard deviation is ``sigma / sqrt(l2 + l3)`` (eigenvalues of S, rad^2; sigma the per-axis
-    noise: ``noise_deg`` or the residuals' spread, whichever is larger). That is the second and third
-    singular values relative to the noise rather than to the first: how parallel the axes must be to
-    leave the angle free depends on how precise the rotations are. Above ``max_free_std_deg`` (1 deg,
-    about the width of the score's basin for a search over the angle) the axis is reported free.
-    Lidar rotations are taken as exact.
-
-    Args:
-        camera_rotvecs: (N, 3) rotation vectors of the camera's ``R_a_b`` per interval, radians.
-        lidar_rotvecs: (N, 3) rotation vectors of the lidar's ``R_a_b`` over the same intervals, radians.
-        weights: (N,) relative confidence of each pair (rescaled to mean 1 over the used pairs).
-        noise_deg: per-axis noise of a unit-weight pair's rotation vectors, degrees.
-        max_free_std_deg: standard deviation about the dominant axis above which it is free, degrees.
-
-    Returns:
-        The rotation, or None when no pair rotated enough. One pair determines two of three angles.
-    """
-    a, b, w = _check_pairs(camera_rotvecs, lidar_rotvecs, weights)
-    sigma = np.deg2rad(noise_deg)
-    use = (np.linalg.norm(b, axis=1) > 5.0 * sigma) & (w > 0)
-    if not np.any(use):
-        return None
-    a, b, w = a[use], b[use], w[use] / np.mean(w[use])
-    R = kabsch(b, a, w)
-    residual = np.linalg.norm(a - b @ R.T, axis=1)
-    if len(a) > 1:
-        sigma = max(sigma, float(np.sqrt(np.sum(w * residual**2) / (3.0 * len(a) - 3.0))))
-    eigval, eigvec = np.linalg.eigh((b * w[:, None]).T @ b)
-    perpendicular = float(eigval[0] + eigval[1])
-    free_std = np.rad2deg(sigma / np.sqrt(perpendicular)) if perpendicular > 0 else np.inf
-    free_axis = eigvec[:, 2] if free_std > max_free_std_deg else None
-    return HandEyeRotation(R, len(a), float(np.rad2deg(np.sqrt(np.mean(residual**2)))),
-                           float(free_std), free_axis)
-
-
 def rotations_about(R_camera_lidar: FloatArray, free_axis_lidar: FloatArray, n: int) -> FloatArray:
     """(n, 3, 3) rotations ``R_camera_lidar @ Rot(free_axis_lidar, theta)``, theta = 360 deg k / n.
 
@@ -290,90 +209,6 @@ def rotations_about(R_camera_lidar: FloatArray, free_axis_lidar: FloatArray, n: 
     theta = 2.0 * np.pi * np.arange(n) / n
     spins = Rotation.from_rotvec(theta[:, None] * (axis / np.linalg.norm(axis))[None, :]).as_matrix()
     return np.asarray(np.einsum("ij,njk->nik", R_camera_lidar, spins))
-
-
-@dataclass(frozen=True)
-class _TranslationPairs:
-    """Stacked pairs: ``D = R_A - I`` (N, 3, 3), camera directions ``u`` (N, 3), ``c = R_X t_B`` (N, 3)."""
-
-    D: FloatArray
-    u: FloatArray
-    c: FloatArray
-
-    def subset(self, keep: NDArray[np.bool_]) -> _TranslationPairs:
-        return _TranslationPairs(self.D[keep], self.u[keep], self.c[keep])
-
-
-def _translation_pairs(R_camera_lidar: FloatArray, camera_motions: list[CameraMotion],
-                       lidar_T_a_b: NDArray[np.floating]) -> _TranslationPairs:
-    T = np.asarray(lidar_T_a_b, dtype=np.float64)
-    if np.shape(R_camera_lidar) != (3, 3):
-        raise InputError(f"hand_eye_translation needs a (3, 3) rotation, got {np.shape(R_camera_lidar)}")
-    if T.shape != (len(camera_motions), 4, 4) or not np.all(np.isfinite(T)):
-        raise InputError(f"hand_eye_translation needs ({len(camera_motions)}, 4, 4) finite lidar motions, "
-                         f"got {T.shape}")
-    keep = [i for i, m in enumerate(camera_motions) if m.direction_a is not None]
-    D = np.array([camera_motions[i].R_a_b - np.eye(3) for i in keep]).reshape(-1, 3, 3)
-    u = np.array([camera_motions[i].direction_a for i in keep], dtype=np.float64).reshape(-1, 3)
-    return _TranslationPairs(D, u, T[keep, :3, 3] @ np.asarray(R_camera_lidar).T)
-
-
-def _solve_translation(pairs: _TranslationPairs, min_singular_ratio: float) -> tuple[
-        FloatArray, FloatArray, FloatArray, FloatArray]:
-    """(t, scales, std per camera axis, free directions (k, 3)) of the least squares in (t, s) with
-    the scales eliminated: ``M t = g``, ``M = sum D^T P D``, ``g = sum D^T P c``, ``P = I - u u^T``."""
-    P = np.eye(3)[None] - pairs.u[:, :, None] * pairs.u[:, None, :]
-    M = np.einsum("nji,njk,nkl->il", pairs.D, P, pairs.D)
-    g = np.einsum("nji,njk,nk->i", pairs.D, P, pairs.c)
-    eigval, eigvec = np.linalg.eigh(M)
-    kept = (eigval > 0) & (np.sqrt(np.clip(eigval, 0.0, None)) >= min_singular_ratio * np.sqrt(eigval[-1]))
-    V, lam = eigvec[:, kept], eigval[kept]
-    t = V @ ((V.T @ g) / lam)
-    left = pairs.c - pairs.D @ t
-    scales = np.einsum("ni,ni->n", pairs.u, left)
-    residual = float(np.sum((left - scales[:, None] * pairs.u) ** 2))
-    dof = max(2 * len(scales) - len(lam), 1)
-    std = np.sqrt(residual / dof * np.sum(V**2 / lam[None, :], axis=1))
-    return t, scales, std, np.asarray(eigvec[:, ~kept].T)
-
-
-def hand_eye_translation(R_camera_lidar: FloatArray, camera_motions: list[CameraMotion],
-                         lidar_T_a_b: NDArray[np.floating],
-                         min_singular_ratio: float = 0.1) -> HandEyeTranslation | None:
-    """Translation ``t`` of ``T_camera_lidar`` from ``(R_A - I) t + s_i u_i = R_camera_lidar t_B``.
-
-    Per pair, ``R_A`` and ``u_i`` are the camera's ``R_a_b`` and ``direction_a``, ``t_B`` the lidar's
-    translation over the same interval and ``s_i > 0`` the camera's unknown travel. The stacked least
-    squares in (t, s) is solved with the scales eliminated: ``M t = g``, ``M = sum (R_A - I)^T P_i
-    (R_A - I)``, ``P_i = I - u_i u_i^T``. A rotation about an axis tells nothing about ``t`` along
-    that axis, so the eigen-directions of M whose singular value (square root of the eigenvalue) is
-    below ``min_singular_ratio`` (0.1) of the largest are free: planar motion excites the direction
-    along the yaw axis with pitch and roll alone, typically well under a tenth of the yaw. A vehicle
-    that only drives forward also leaves the camera's lateral offset weak: that offset changes the
-    camera's travel mostly in length (the unknown ``s_i``), hardly in direction. The solution is zero
-    along free directions (their signs are arbitrary). Pairs that come out with ``s_i <= 0`` (travel opposite to
-    the measured direction) are dropped and the rest solved again. Pairs without a direction are skipped.
-
-    Args:
-        R_camera_lidar: (3, 3) rotation of ``T_camera_lidar``.
-        camera_motions: per interval, the camera's motion.
-        lidar_T_a_b: (N, 4, 4) per interval, the lidar's pose at b in the lidar frame at a, metres.
-        min_singular_ratio: relative singular value below which a direction of t is free.
-
-    Returns:
-        The translation, or None with fewer than 2 usable pairs.
-    """
-    pairs = _translation_pairs(R_camera_lidar, camera_motions, lidar_T_a_b)
-    if len(pairs.u) < 2:
-        return None
-    t, scales, std, free = _solve_translation(pairs, min_singular_ratio)
-    if np.any(scales <= 0):
-        pairs = pairs.subset(scales > 0)
-        if len(pairs.u) < 2:
-            return None
-        t, scales, std, free = _solve_translation(pairs, min_singular_ratio)
-    observable = np.sum(free**2, axis=0) < 0.25
-    return HandEyeTranslation(t, np.where(observable, std, np.inf), observable, free, scales, len(scales))
 
 
 TRAVEL_NOISE_DEG = 1.0
