@@ -82,7 +82,8 @@ def main() -> None:
             log = work / f"{case}-{seed}.mcap"
             if not log.exists():
                 subprocess.run([*FLEETCAL, "simulate", str(log), "--frames", "60", "--image-size", "960x540",
-                                "--no-tf-static", "--seed", str(seed), "-q", *SIMULATED[case]], check=True)
+                                "--no-tf-static", "--seed", str(seed), "-q", *SIMULATED[case]], check=True,
+                               stdout=subprocess.DEVNULL)
             print("\n".join(calibrate(f"{case} seed {seed}", log, work / f"{case}-{seed}-out", ["--frames", "20"])),
                   flush=True)
 
