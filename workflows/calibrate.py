@@ -18,7 +18,6 @@ from typing import Any, NoReturn
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from fleetcal.pipeline.camera_model import CameraModel, with_model
 from fleetcal.pipeline.config import Config
@@ -45,15 +44,14 @@ from fleetcal.stages.calibration.frame import (
     CameraFeatures,
     LidarFeatures,
     camera_feature_stage,
-    equalised_grey,
     join_frame,
     lidar_feature_stage,
 )
-from fleetcal.stages.calibration.hand_eye import CameraMotion, camera_motion, motion_rotation
-from fleetcal.stages.calibration.initialisation import InitialGuess, search_initial_guess
+from fleetcal.stages.calibration.initialisation import InitialGuess
 from fleetcal.stages.sinks import report
 from fleetcal.stages.sinks.tables import CALIBRATION_SCHEMA, FRAMES_SCHEMA, STD_COLUMNS, write_rows
 from fleetcal.workflows import mapping
+from fleetcal.workflows.calibration_start import find_start
 from fleetcal.workflows.ego_motion import camera_twist, has_odometry, scan_motion, sweep_motion, twist_motion
 from fleetcal.workflows.frame_sources import STAGE_WARMUPS, LogFrames
 from fleetcal.workflows.pairing import ChosenPair, PairingStats, choose_pairs
@@ -393,82 +391,6 @@ def _raise_unpaired(lidar_topic: str, camera_topic: str, stats: PairingStats, co
 
 AUTO = "auto"
 """``--initial auto``: search the start even where the log's tf has one."""
-SEARCH_FRAMES = 6
-"""Frames (spread over those collected) that score the start's candidates."""
-
-
-@dataclass(frozen=True)
-class _GreyStage:
-    """Engine stage: the equalised grey (uint8) of the images whose header stamp is in ``stamps_ns``, with the
-    stamp (others: None)."""
-
-    stamps_ns: frozenset[int]
-
-    def __call__(self, camera: CameraFrame) -> tuple[int, NDArray[np.uint8]] | None:
-        if camera.stamp_ns not in self.stamps_ns:
-            return None
-        return camera.stamp_ns, equalised_grey(camera.image)
-
-
-def rig_motions(reader: LogReader, camera_topic: str, col: _Collected, config: Config,
-                engine: Engine | None = None) -> tuple[list[CameraMotion], NDArray[np.float64]]:
-    """The camera's motion between each frame's image and the image next to it (``camera_motion``) and the
-    lidar's ``T_a_b`` (4, 4) over the same interval from the frame's twist, for the frames that have both."""
-    wanted = [(f, p) for f, p in zip(col.frames, col.pairs, strict=True)
-              if p.camera_neighbour_log_ns >= 0 and f.twist_at_camera() is not None and f.intensity is not None]
-    if not wanted:
-        return [], np.zeros((0, 4, 4))
-    source = LogFrames(reader.paths, config.io.allow_truncated, config.io.max_range_m)
-    own = engine is None
-    engine = Engine(workers=0, quiet=True, warmups=STAGE_WARMUPS) if engine is None else engine
-    try:
-        greys = dict(engine.map_frames(source, camera_topic, _GreyStage(frozenset(
-            p.camera_neighbour_stamp_ns for _, p in wanted)), ordered=True, desc="initialisation images",
-            log_times_ns=[p.camera_neighbour_log_ns for _, p in wanted]))
-    finally:
-        if own:
-            engine.close()
-    motions, lidar = [], []
-    for frame, pair in wanted:
-        other = greys.get(pair.camera_neighbour_stamp_ns)
-        if other is None:
-            continue
-        earlier = pair.camera_neighbour_stamp_ns < frame.stamp_ns
-        grey = np.asarray(frame.intensity, dtype=np.uint8)
-        motion = camera_motion(other, grey, frame.camera) if earlier else camera_motion(grey, other, frame.camera)
-        if motion is not None:
-            motions.append(motion)
-            lidar.append(twist_motion_T(frame.twist_at_camera(), abs(frame.stamp_ns - pair.camera_neighbour_stamp_ns)))
-    return motions, np.asarray(lidar).reshape(-1, 4, 4)
-
-
-def twist_motion_T(twist: NDArray[np.floating] | None, dt_ns: int) -> NDArray[np.float64]:
-    """``T_a_b`` (4, 4) of a body moving with ``twist`` (6,: m/s, rad/s, its own frame) for ``dt_ns``."""
-    w = np.zeros(6) if twist is None else np.asarray(twist, dtype=np.float64)
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(w[3:] * dt_ns / 1e9).as_matrix()
-    T[:3, 3] = w[:3] * dt_ns / 1e9
-    return T
-
-
-def find_start(reader: LogReader, camera_topic: str, col: _Collected, frames: list[CalibrationFrame],
-               config: Config, solver: SolverConfig, engine: Engine | None = None,
-               quiet: bool = True) -> InitialGuess:
-    """A start without a guess: around the rotation the rig's motion gives (``motion_rotation``), else over the
-    whole rotation space (``search_initial_guess``), scored on at most ``SEARCH_FRAMES`` of ``frames``."""
-    motions, lidar_T = rig_motions(reader, camera_topic, col, config, engine)
-    rotation = motion_rotation(motions, lidar_T) if motions else None
-    index = np.unique(np.linspace(0, len(frames) - 1, min(len(frames), SEARCH_FRAMES)).round().astype(int))
-    with Progress(total=100, desc=f"start search ({'motion' if rotation is not None else 'all rotations'})",
-                  quiet=quiet, unit="%", line_interval_s=1.0) as bar:
-        guess = search_initial_guess([frames[i] for i in index], solver, rotation,
-                                     progress=lambda done: bar.update(int(100 * done) - bar.done))
-        bar.update(100 - bar.done)
-    log.info("start from %s (%d camera motions%s): %d candidates, score %.4g, runner-up %.4g %.1f deg away%s",
-             guess.source, len(motions), "" if rotation is None or rotation.free_axis_lidar is None else
-             ", one axis free", guess.candidates, guess.score, guess.runner_up_score, guess.runner_up_deg,
-             ", ambiguous" if guess.ambiguous else "")
-    return guess
 
 
 def _searched_start(pairs: list[PairCalibration], guess: InitialGuess) -> None:
@@ -496,7 +418,7 @@ def _start(reader: LogReader, topic: str, col: _Collected, frames: list[Calibrat
                 f"the log's tf has no path from {col.lidar_frame!r} to {col.camera_frame!r} ({problem})")
         raise InputError(f'no initial guess: {path}; give one with --initial "x y z roll pitch yaw" or search one '
                          "with --initial auto")
-    guess = find_start(reader, topic, col, frames, config, solver, engine, quiet)
+    guess = find_start(reader, topic, col.frames, col.pairs, frames, config, solver, engine, quiet)
     return guess.T_camera_lidar, guess
 
 
