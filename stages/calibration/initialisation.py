@@ -1,26 +1,32 @@
-"""A starting ``T_camera_lidar`` for a log that has none: GOM scored over the whole rotation space (or over
-the rotations the rig's motion leaves free), on heavily blurred image gradients, then the best distinct
-candidates polished and compared.
+"""A starting ``T_camera_lidar`` for a log that has none: the lidar's edges scored against the images' over
+candidate rotations (around a rotation from the rig's motion, all along the axis motion leaves free, or over
+every rotation), on blurred image gradients, then the best distinct candidates polished and compared.
+
+The score is GOM's numerator above chance (``GomScorer.alignment``: lidar times image gradient magnitudes
+times the cosine of twice their orientation difference), each frame's divided by the alignment all its lidar
+gradients would have with a mean image gradient; unlike GOM it is not divided by the weight a pose sees, so
+a pose that sees a few aligned edges does not beat one that sees many.
 
 The rotation is what must be found: the camera is assumed within a few metres of the lidar, so at the
-scene's ranges a translation error turns the view by a few degrees, which the blur covers; the calibration's
-own search then finds the translation from the rotation found here (``translation_m`` is the starting
-translation, zero by default).
+scene's ranges a translation error turns the view by a few degrees; the polish frees the translation within
+the calibration's box so that the rotation does not make up for it, and the calibration's own search then
+finds the translation (the start keeps ``translation_m``, zero by default).
 
-Grid: optical-axis directions on a Fibonacci sphere ``cell_deg`` apart; around each, tilts and rolls about
-the optical axis ``step_deg`` apart. The lidar gradients are computed once per direction
-(``lidar_view_gradients``) and turned with each candidate's roll (``GomScorer``), so all candidates of a
-direction cost one kernel call per frame. The image blur is half a step's footprint in pixels, so that a
-candidate within half a step of the truth lies in the blurred score's basin.
+Grid: optical-axis directions on a Fibonacci sphere ``CELL_DEG`` apart, around each tilts and rolls about
+the optical axis ``STEP_DEG`` apart (or the motion candidates, ``_candidates``). The lidar gradients are
+computed once per base rotation (``lidar_view_gradients``) and turned with each candidate's roll
+(``GomScorer``), so all candidates of a base cost one kernel call per frame. The image blur is half a step's
+footprint in pixels, so that a candidate within half a step of the truth lies in the blurred score's basin.
 
 Two candidates are told apart by the image-band test of ``uncertainty.scores_alike``: where the best
-polished candidate does not score clearly above a distant runner-up, the start is ``ambiguous``.
+polished candidate does not score clearly above a runner-up that the calibration's box around it does not
+reach, the start is ``ambiguous``; where the best does not score clearly above zero, there is no start.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -44,6 +50,7 @@ STEP_DEG = 7.5
 POINTS_PER_FRAME = 3000
 """Scored points per frame in the coarse search (every s-th of the strongest gradients)."""
 POLISHED = 4
+"""Distinct candidates polished and compared."""
 MOTION_STEP_DEG = 1.5
 """Spacing of the candidates around a rotation found from motion (its error is a degree or two)."""
 MOTION_HALF_DEG = 4.5
@@ -51,7 +58,6 @@ MOTION_HALF_DEG = 4.5
 ``hand_eye.motion_rotation`` calls determined (1.5 deg)."""
 MOTION_CELL_DEG = 15.0
 """Spacing along a free axis of the rotations whose lidar gradients are computed."""
-"""Distinct candidates polished and compared."""
 
 
 @dataclass(frozen=True)
@@ -358,11 +364,3 @@ def _candidates(motion: HandEyeRotation | None) -> tuple[NDArray[np.float64], ND
     bases = rotations_about(R, motion.free_axis_lidar, round(360.0 / MOTION_CELL_DEG))
     turns = axis_turns(R @ motion.free_axis_lidar, MOTION_CELL_DEG / 2.0, MOTION_STEP_DEG)
     return bases, turns, MOTION_STEP_DEG, MOTION_CELL_DEG / 2.0 + MOTION_STEP_DEG
-
-
-def with_search_frames(frames: list[CalibrationFrame], limit: int) -> list[CalibrationFrame]:
-    """At most ``limit`` frames spread over ``frames`` (the coarse search needs a few, not all)."""
-    if len(frames) <= limit:
-        return frames
-    index = np.linspace(0, len(frames) - 1, limit).round().astype(int)
-    return [replace(frames[i]) for i in index]
