@@ -393,6 +393,19 @@ AUTO = "auto"
 """``--initial auto``: search the start even where the log's tf has one."""
 
 
+SEARCHED_START_M = 1.0
+"""Half-width of the translation box (metres) around a searched start, whose translation is 0: the camera
+within about a metre of the lidar on each axis. The box is then wide: the start is not trusted."""
+
+
+def _box_for(solver: SolverConfig, guess: InitialGuess | None) -> SolverConfig:
+    """The solver for a calibration from a searched start (``guess``): the translation box widened to
+    ``SEARCHED_START_M``; from the tf or ``--initial``, ``solver`` itself."""
+    if guess is None:
+        return solver
+    return replace(solver, search_m=max(solver.search_m, SEARCHED_START_M))
+
+
 def _searched_start(pairs: list[PairCalibration], guess: InitialGuess) -> None:
     """Record a searched start on its pairs; an ambiguous one makes the verdict ``suspect``."""
     for pair in pairs:
@@ -481,7 +494,7 @@ def run_calibration(
                                quiet)
         _check_visible(col.frames, T_init, topic)
         with search_progress(quiet) as progress:
-            result = calibrate(col.frames, T_init, solver, progress)
+            result = calibrate(col.frames, T_init, _box_for(solver, guess), progress)
         results.append(_pair(lidar_topic, topic, col, result, result.T_camera_lidar, T_init))
         _initialised(results[-1:], initial, guess)
     return results
@@ -534,7 +547,7 @@ def _calibrate_joint(
             frames.append(f)
     T_init, guess = _start(reader, camera_topics[0], ref, frames, tf, initial, config, solver, engine, quiet)
     with search_progress(quiet) as progress:
-        result = calibrate(frames, T_init, solver, progress)
+        result = calibrate(frames, T_init, _box_for(solver, guess), progress)
     pairs = [
         _pair(lidar_topic, topic, collected[topic], result, T_cam_ref[topic] @ result.T_camera_lidar,
               T_cam_ref[topic] @ T_init, ref.camera_frame)  # fmt: skip
