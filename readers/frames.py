@@ -259,20 +259,31 @@ def check_tf(reader: LogReader, tolerance_ns: int = 100_000_000) -> TfCheck:
     return check
 
 
-def load_tf_tree(reader: LogReader, tolerance_ns: int = 100_000_000) -> TransformTree:
-    """TransformTree of the log's ``/tf`` (dynamic) and ``/tf_static`` (static) topics.
+def load_tf(reader: LogReader, tolerance_ns: int = 100_000_000) -> tuple[TransformTree | None, str | None]:
+    """TransformTree of the log's ``/tf`` (dynamic) and ``/tf_static`` (static) topics, and what is wrong
+    with them (None: nothing).
 
     Bad entries (NaN, not a rotation, self-loops, undecodable messages) are skipped, counted and
-    reported in one logged warning.
-
-    Raises:
-        TransformError: the edges are not a tree (a frame with two parents, a loop): which of two
-            disagreeing transforms is meant cannot be known, so none is used; the message names the frames.
+    reported in one logged warning (and as the problem). Edges that are not a tree (a frame with two
+    parents, a loop) give no tree: which of two disagreeing transforms is meant cannot be known, so none is
+    used; the problem names the frames.
     """
     check = check_tf(reader, tolerance_ns)
     bad = check.bad_entries_text()
     if bad:
         log.warning("%s", bad)
     if check.structure:
-        raise TransformError(f"the log's tf is not a tree: {'; '.join(check.structure)}")
-    return check.tree
+        return None, f"the log's tf is not a tree: {'; '.join(check.structure)}"
+    return check.tree, bad
+
+
+def load_tf_tree(reader: LogReader, tolerance_ns: int = 100_000_000) -> TransformTree:
+    """``load_tf``'s tree.
+
+    Raises:
+        TransformError: the edges are not a tree (the message names the frames).
+    """
+    tree, problem = load_tf(reader, tolerance_ns)
+    if tree is None:
+        raise TransformError(str(problem))
+    return tree

@@ -36,7 +36,7 @@ from fleetcal.pipeline.transforms import (
     translation_error_m,
 )
 from fleetcal.readers.base import LogReader
-from fleetcal.readers.frames import CameraInfoTracker, check_tf
+from fleetcal.readers.frames import CameraInfoTracker, load_tf
 from fleetcal.stages.calibration.calibrator import CalibrationResult, ProgressCallback, SearchProgress, calibrate
 from fleetcal.stages.calibration.config import CalibrationConfig as SolverConfig
 from fleetcal.stages.calibration.frame import (
@@ -452,16 +452,11 @@ def initial_guess(
 
 
 def _log_tf(reader: LogReader) -> tuple[TransformTree | None, str | None]:
-    """The log's tf tree (None where its edges are not a tree) and what is wrong with it (None: nothing)."""
-    check = check_tf(reader)
-    problem = check.bad_entries_text()
-    if problem:
-        log.warning("%s", problem)
-    if check.structure:
-        problem = f"the log's tf is not a tree: {'; '.join(check.structure)}"
+    """``readers.frames.load_tf``, saying that a tf which is not a tree is ignored."""
+    tree, problem = load_tf(reader)
+    if tree is None:
         log.warning("ignoring the log's tf (no ego-motion from it): %s", problem)
-        return None, problem
-    return check.tree, problem
+    return tree, problem
 
 
 def run_calibration(

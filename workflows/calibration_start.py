@@ -10,12 +10,12 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from fleetcal.pipeline.config import Config
 from fleetcal.pipeline.engine import Engine
 from fleetcal.pipeline.frames import CameraFrame
 from fleetcal.pipeline.progress import Progress
+from fleetcal.pipeline.transforms import exp_se3
 from fleetcal.readers.base import LogReader
 from fleetcal.stages.calibration.config import CalibrationConfig as SolverConfig
 from fleetcal.stages.calibration.frame import CalibrationFrame, equalised_grey
@@ -64,25 +64,17 @@ def rig_motions(reader: LogReader, camera_topic: str, frames: list[CalibrationFr
             engine.close()
     motions, lidar = [], []
     for frame, pair in wanted:
-        other = greys.get(pair.camera_neighbour_stamp_ns)
-        if other is None:
+        other, twist = greys.get(pair.camera_neighbour_stamp_ns), frame.twist_at_camera()
+        if other is None or twist is None:
             continue
         earlier = pair.camera_neighbour_stamp_ns < frame.stamp_ns
         grey = np.asarray(frame.intensity, dtype=np.uint8)
         motion = camera_motion(other, grey, frame.camera) if earlier else camera_motion(grey, other, frame.camera)
         if motion is not None:
             motions.append(motion)
-            lidar.append(twist_motion_T(frame.twist_at_camera(), abs(frame.stamp_ns - pair.camera_neighbour_stamp_ns)))
+            dt_s = abs(frame.stamp_ns - pair.camera_neighbour_stamp_ns) * 1e-9
+            lidar.append(exp_se3(np.concatenate([twist[3:], twist[:3]]) * dt_s))  # T_a_b, first order
     return motions, np.asarray(lidar).reshape(-1, 4, 4)
-
-
-def twist_motion_T(twist: NDArray[np.floating] | None, dt_ns: int) -> NDArray[np.float64]:
-    """``T_a_b`` (4, 4) of a body moving with ``twist`` (6,: m/s, rad/s, its own frame) for ``dt_ns``."""
-    w = np.zeros(6) if twist is None else np.asarray(twist, dtype=np.float64)
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(w[3:] * dt_ns / 1e9).as_matrix()
-    T[:3, 3] = w[:3] * dt_ns / 1e9
-    return T
 
 
 def find_start(reader: LogReader, camera_topic: str, camera_frames: list[CalibrationFrame],

@@ -34,7 +34,7 @@ from scipy.spatial.transform import Rotation
 
 from fleetcal.pipeline.camera_model import CameraModel
 from fleetcal.pipeline.errors import ProcessingError
-from fleetcal.pipeline.transforms import apply
+from fleetcal.pipeline.transforms import apply, rotation_error_deg
 from fleetcal.stages.calibration.config import CalibrationConfig
 from fleetcal.stages.calibration.frame import CalibrationFrame, Mat4, fold_rectification
 from fleetcal.stages.calibration.hand_eye import HandEyeRotation, rotations_about
@@ -251,7 +251,7 @@ def _distinct(rotations: NDArray[np.float64], scores: NDArray[np.float64], separ
     for i in np.argsort(-scores):
         if scores[i] <= 0 or len(chosen) == count:
             break
-        if all(_angle_deg(rotations[i], rotations[j]) > separation_deg for j in chosen):
+        if all(rotation_error_deg(rotations[i], rotations[j]) > separation_deg for j in chosen):
             chosen.append(int(i))
     return chosen
 
@@ -261,11 +261,6 @@ def _outside_box(R: NDArray[np.float64], R_centre: NDArray[np.float64], half_deg
     +-``half_deg``, camera frame) around ``R_centre``."""
     turn = Rotation.from_matrix(R @ R_centre.T).as_rotvec(degrees=True)
     return bool(np.max(np.abs(turn)) > half_deg)
-
-
-def _angle_deg(R_a: NDArray[np.float64], R_b: NDArray[np.float64]) -> float:
-    cos = (np.trace(R_a @ R_b.T) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
 
 
 @dataclass(frozen=True)
@@ -346,8 +341,8 @@ def search_initial_guess(frames: list[CalibrationFrame], config: CalibrationConf
     ambiguous = runner is not None and scores_alike(top.bands - runner.bands)
     return InitialGuess(
         _poses(top.R[None], t)[0], "search" if motion is None else "motion", int(R_all.shape[0]) + len(best),
-        top.score, runner.score if runner else float("nan"), _angle_deg(runner.R, top.R) if runner else float("nan"),
-        bool(ambiguous))
+        top.score, runner.score if runner else float("nan"),
+        rotation_error_deg(runner.R, top.R) if runner else float("nan"), bool(ambiguous))
 
 
 def _candidates(motion: HandEyeRotation | None) -> tuple[NDArray[np.float64], NDArray[np.float64], float, float]:
