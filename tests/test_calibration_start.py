@@ -49,6 +49,7 @@ def test_a_log_without_tf_static_starts_from_its_motion(tmp_path: Path) -> None:
     assert error_deg < 0.5 and error_m < 0.15, (error_deg, error_m, pair.result.verdict)
     row = pair.summary()
     assert row["initialisation"] == "motion" and row["motion_source"] == "odometry"
+    np.testing.assert_array_equal(row["T_camera_lidar_initial"], pair.T_camera_lidar_initial)
 
 
 def test_initial_auto_replaces_a_wrong_tf(tmp_path: Path) -> None:
