@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from fleetcal.pipeline.camera_model import CameraModel
 from fleetcal.pipeline.errors import ProcessingError
 from fleetcal.pipeline.transforms import apply, from_xyz_rpy
 from fleetcal.stages.calibration.sphere_gradients import (
@@ -15,7 +14,6 @@ from fleetcal.stages.calibration.sphere_gradients import (
     camera_sphere_neighbours,
     compute_sphere_gradients,
     cross_ring_neighbours,
-    image_plane_gradients,
     lidar_view_gradients,
     ring_spacing_rad,
     sampling_aspect,
@@ -182,36 +180,3 @@ def test_second_channel_reuses_the_first_channels_neighbours(view: str) -> None:
         np.testing.assert_array_equal(camera_sphere_neighbours(pts, T, 8, "sampling"), own.neighbours)
     with pytest.raises(ProcessingError, match="do not match"):
         compute_sphere_gradients(pts, second, T, k=8, neighbours=own.neighbours[:, :4])
-
-
-@pytest.mark.parametrize("model", ["plumb_bob", "equidistant"])
-def test_sphere_gradients_are_turned_into_the_image_axes(model: str) -> None:
-    """A feature that ramps along one image direction (value = a u + b v at each point's pixel) has its
-    gradient along (a, b) in the image. Its gradient on the sphere (finite differences in azimuth and polar
-    angle) points elsewhere away from the image's centre lines, by up to ~8 deg at the corners of a KITTI-like
-    camera; turned into image axes it is (a, b) again everywhere, and its norm is kept."""
-    D = np.array([-0.3, 0.1, 0.0, 0.0, 0.0]) if model == "plumb_bob" else np.array([0.05, -0.01, 0.0, 0.0])
-    camera = CameraModel(1242, 375, np.array([[721.5, 0, 609.6], [0, 721.5, 172.9], [0, 0, 1]]), D, model)
-    u, v = np.meshgrid(np.linspace(20, 1220, 13), np.linspace(15, 360, 7))
-    points = camera.unproject(np.column_stack([u.ravel(), v.ravel()])) * 12.0
-    a, b = np.cos(np.radians(35.0)), np.sin(np.radians(35.0))
-    sphere = sphere_coordinates(points)
-    r = np.linalg.norm(points, axis=1)
-
-    def value(az: NDArray[np.float64], polar: NDArray[np.float64]) -> NDArray[np.float64]:
-        q = r[:, None] * np.column_stack([np.sin(polar) * np.sin(az), -np.cos(polar), np.sin(polar) * np.cos(az)])
-        px, _ = camera.project(q)
-        return a * px[:, 0] + b * px[:, 1]
-
-    h = 1e-6
-    g_az = (value(sphere[:, 0] + h, sphere[:, 1]) - value(sphere[:, 0] - h, sphere[:, 1])) / (2 * h)
-    g_polar = (value(sphere[:, 0], sphere[:, 1] + h) - value(sphere[:, 0], sphere[:, 1] - h)) / (2 * h)
-    expected = np.full(len(points), np.arctan2(b, a))
-    on_sphere = _doubled_angle_error_deg(np.arctan2(g_polar, g_az), expected)
-    assert on_sphere.max() > 4.0  # the sphere's axes are sheared against the image's
-    g_u, g_v = image_plane_gradients(points, g_az, g_polar, camera)
-    assert _doubled_angle_error_deg(np.arctan2(g_v, g_u), expected).max() < 0.05
-    np.testing.assert_allclose(np.hypot(g_u, g_v), np.hypot(g_az, g_polar), rtol=1e-9)
-    if model == "plumb_bob":  # behind a pinhole the projection is undefined: the gradient is kept
-        behind = image_plane_gradients(-points[:3], g_az[:3], g_polar[:3], camera)
-        np.testing.assert_array_equal(np.column_stack(behind), np.column_stack([g_az[:3], g_polar[:3]]))

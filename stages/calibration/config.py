@@ -70,16 +70,6 @@ class CalibrationConfig:
             gradient magnitude (points with zero magnitude never count in GOM and are always dropped).
         sphere_k: sphere neighbours for lidar gradients (paper: 8).
         normalise_gradients: unit neighbour directions in Algorithm 1 (see ``sphere_kernels``).
-        turn_gradients_with_roll: turn the lidar gradient orientations by each candidate's roll about
-            the optical axis relative to the initial guess (the paper keeps them fixed).
-        lidar_gradient_axes: ``sphere`` (default, the paper, whose cameras were panoramic): lidar gradients
-            are compared with the image's as computed along the sphere's azimuth / polar axes; ``image``:
-            each is first turned into image u / v at its pixel (``image_plane_gradients``), undoing the
-            pinhole's shear of the sphere's axes (up to ~8 deg at KITTI's corners). Geometrically right but
-            not better on the logs, so not the default (defaults, from tf, sphere -> image): KITTI
-            0.139 / 7.3 -> 0.117 deg / 7.1 cm; PJLab rig1 0.172 / 27.3 -> 0.216 / 37.0 (both suspect); rig2
-            0.304 / 16.1 recalibrated -> 0.420 / 25.1 suspect; nuScenes joint unchanged (0.576 / 31.0);
-            simulated street (intensity, 5 deg / 0.5 m start) 0.253 / 0.9 -> 0.237 / 1.1.
         lidar_magnitude: GOM weight of a lidar point: ``paper`` (Algorithm 1, sum of absolute
             differences) or ``vector`` (length of the gradient vector; isotropic noise cancels).
         estimate_focal: also estimate a common scale of fx and fy (paper dataset I).
@@ -181,17 +171,6 @@ class CalibrationConfig:
             swarm ended 4.6 deg / 36 cm off with tx at -0.500 m, and had been ``recalibrated`` (range:
             4.4 deg / 81 cm, rx and ty at the edge). Flags none of the real logs' results from their tf,
             nor any of the 10 KITTI starts 5 deg / 0.5 m off in a 10 deg / 1 m box.
-        occlusion_filter: at preparation (initial guess, after ego-motion) drop lidar points hidden from
-            the camera behind nearer lidar points, per frame, with the coarse z-buffer of
-            ``stages.colorize.unoccluded`` (cells of ``occlusion_cell_px`` pixels; a point is kept when
-            its depth <= (1 + ``occlusion_rel_tol``) * nearest in its cell + ``occlusion_abs_tol_m``).
-            Points outside the image at the initial guess are kept. Dropped before the sphere gradients.
-            Off by default: it hurt the real logs (defaults, CLI: KITTI 0.14 deg / 8.0 cm -> 0.81 / 29.8;
-            nuScenes joint 0.37 / 22.3 -> 1.55 / 50.4; PJLab rig1 6.7 / 29 -> 3.1 / 53) and was mixed on
-            the simulated street (960x540, 4 frames: seed 1 0.92 / 21.5 -> 0.69 / 22.0; seed 2
-            0.51 / 10.4 -> 0.78 / 3.3; open, intensity 1.51 / 14.2 -> 1.50 / 14.1).
-        occlusion_cell_px, occlusion_rel_tol, occlusion_abs_tol_m: z-buffer cell size (pixels) and
-            depth tolerances (fraction, metres).
         gradient_viewpoint: where the lidar gradients are computed. ``camera`` (paper 3.3): on a sphere
             centred on the camera at the initial guess. ``lidar``: on the lidar's own sphere (origin at
             capture, where neighbours never straddle a depth edge and rings / columns are exact), the
@@ -290,8 +269,6 @@ class CalibrationConfig:
     sphere_k: int = 8
     normalise_gradients: bool = False
     lidar_magnitude: str = "paper"
-    turn_gradients_with_roll: bool = True
-    lidar_gradient_axes: str = "sphere"
     estimate_focal: bool = False
     focal_search: float = 0.05
     min_points: int = 100
@@ -314,10 +291,6 @@ class CalibrationConfig:
     agree_translation_m: float = 0.15
     confirm_repeats: int = 3
     box_edge_fraction: float = 0.02
-    occlusion_filter: bool = False
-    occlusion_cell_px: int = 4
-    occlusion_rel_tol: float = 0.1
-    occlusion_abs_tol_m: float = 0.1
     gradient_viewpoint: str = "auto"
     wide_box_above_deg: float = 5.0
     wide_box_above_m: float = 0.5
@@ -417,8 +390,6 @@ class CalibrationConfig:
             raise ConfigError("min_overlap_fraction must be in [0, 1)")
         if not 0 < self.keep_fraction <= 1:
             raise ConfigError("keep_fraction must be in (0, 1]")
-        if self.lidar_gradient_axes not in ("image", "sphere"):
-            raise ConfigError("lidar_gradient_axes must be 'image' or 'sphere'")
         if self.lidar_magnitude not in ("paper", "vector"):
             raise ConfigError("lidar_magnitude must be 'paper' or 'vector'")
         if not 0 < self.focal_search < 0.5:
@@ -429,5 +400,3 @@ class CalibrationConfig:
             raise ConfigError("gradient_fit must be 'auto', 'paper' or 'lsq'")
         if self.neighbours_by not in ("auto", "angle", "sampling"):
             raise ConfigError("neighbours_by must be 'auto', 'angle' or 'sampling'")
-        if self.occlusion_cell_px < 1 or self.occlusion_rel_tol < 0 or self.occlusion_abs_tol_m < 0:
-            raise ConfigError("need occlusion_cell_px >= 1 and non-negative occlusion tolerances")

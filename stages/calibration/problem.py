@@ -36,11 +36,9 @@ from fleetcal.stages.calibration.sphere_gradients import (
     camera_sphere_neighbours,
     compute_sphere_gradients,
     depth_discontinuities,
-    image_plane_gradients,
     lidar_view_gradients,
     ring_spacing_rad,
 )
-from fleetcal.stages.colorize import unoccluded
 
 
 class Scorer(Protocol):
@@ -91,19 +89,6 @@ def _view_cull(points_cam: NDArray[np.float64], camera: CameraModel, margin_rad:
     el = np.abs(np.arctan2(y, z))
     front = z > 0
     return np.asarray(front & (az < half_u + slack) & (el < half_v + slack))
-
-
-def visible_points(points_cam: NDArray[np.float64], camera: CameraModel, cell_px: int, rel_tol: float,
-                   abs_tol_m: float) -> NDArray[np.bool_]:
-    """(N,) False for camera-frame points (metres) that project into the image behind nearer points
-    (coarse z-buffer ``stages.colorize.unoccluded``); points outside the image are kept (True)."""
-    uv, valid = camera.project(points_cam)
-    keep = np.ones(points_cam.shape[0], dtype=bool)
-    idx = np.flatnonzero(valid)
-    if idx.size:
-        keep[idx] = unoccluded(uv[idx], points_cam[idx, 2], (camera.height, camera.width), cell_px, rel_tol,
-                               abs_tol_m)
-    return keep
 
 
 def _image_order(points_cam: NDArray[np.float64], camera: CameraModel) -> NDArray[np.int64]:
@@ -241,10 +226,6 @@ class CalibrationProblem:
         keep = _view_cull(apply(T_cam_lidar, pts), f.camera, np.radians(cfg.search_deg) * np.sqrt(3),
                           cfg.search_m * np.sqrt(3))
         pts, feat, raw = pts[keep], feat[keep], raw[keep]
-        if cfg.occlusion_filter:
-            keep = visible_points(apply(T_cam_lidar, pts), f.camera, cfg.occlusion_cell_px,
-                                  cfg.occlusion_rel_tol, cfg.occlusion_abs_tol_m)
-            pts, feat, raw = pts[keep], feat[keep], raw[keep]
         order = _image_order(apply(T_cam_lidar, pts), f.camera)
         pts, feat, raw = pts[order], feat[order], raw[order]
         if pts.shape[0] <= cfg.sphere_k:
@@ -293,10 +274,8 @@ class CalibrationProblem:
             cut = np.quantile(magnitude[sel], 1.0 - cfg.keep_fraction)
             sel &= magnitude >= cut
         gx, gy = grads.gx[sel], grads.gy[sel]
-        if cfg.lidar_gradient_axes == "image":
-            gx, gy = image_plane_gradients(apply(T_cam_lidar, pts[sel]), gx, gy, f.camera)
         scorer = GomScorer(pts[sel], gx, gy, magnitude[sel], image, f.camera,
-                           T_cam_lidar[:3, :3] if cfg.turn_gradients_with_roll else None)
+                           T_cam_lidar[:3, :3])
         return scorer, int(sel.sum()), grads.neighbours
 
     def T_camera_lidar_batch(self, x: NDArray[np.floating]) -> NDArray[np.float64]:

@@ -13,7 +13,6 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from fleetcal.pipeline.camera_model import CameraModel
 from fleetcal.pipeline.errors import ProcessingError
 from fleetcal.pipeline.transforms import apply
 from fleetcal.stages.calibration.sphere_kernels import (
@@ -281,47 +280,3 @@ def lidar_view_gradients(raw_xyz: NDArray[np.floating], points_xyz: NDArray[np.f
     gy = np.where(norm > 0, -d_az / d_safe * norm, 0.0)
     return LidarGradients(gx, gy, at_lidar.magnitude, np.arctan2(gy, gx), uv, at_lidar.neighbours)
 
-
-def image_plane_gradients(points_cam: NDArray[np.floating], gx: NDArray[np.floating], gy: NDArray[np.floating],
-                          camera: CameraModel, step_rad: float = 1e-4) -> tuple[NDArray[np.float64],
-                                                                                 NDArray[np.float64]]:
-    """Sphere gradients (along azimuth and polar angle, ``sphere_coordinates``) turned into gradients along
-    image u and v at each point's pixel, for comparison with the image's.
-
-    The sphere's angles line up with u and v only on the image's centre lines: elsewhere a pinhole camera
-    shears them (a 1242x375 KITTI image by up to 7 deg at its corners, more with a wider lens or with
-    distortion). A gradient is a covector, so ``g_uv = J^-T g_sphere`` with ``J = d(u, v) / d(azimuth,
-    polar)`` of the camera model at the point (finite differences of ``step_rad``). The result keeps the
-    sphere gradient's norm, so only the orientation changes; the gradient stays as it was where the
-    projection is undefined (behind the camera, folded distortion).
-
-    Args:
-        points_cam: (N, 3) points in the camera's optical frame, metres.
-        gx, gy: (N,) gradient along azimuth and along polar angle.
-        camera: intrinsics (no rectification rotation: fold it into the pose first).
-    """
-    p = np.asarray(points_cam, dtype=np.float64)
-    g_a = np.asarray(gx, dtype=np.float64).ravel()
-    g_p = np.asarray(gy, dtype=np.float64).ravel()
-    uv = sphere_coordinates(p)
-    r = np.linalg.norm(p, axis=1)
-
-    def direction(az: NDArray[np.float64], polar: NDArray[np.float64]) -> NDArray[np.float64]:
-        return r[:, None] * np.column_stack([np.sin(polar) * np.sin(az), -np.cos(polar), np.sin(polar) * np.cos(az)])
-
-    px0, _ = camera.project(p)
-    px_a, _ = camera.project(direction(uv[:, 0] + step_rad, uv[:, 1]))
-    px_p, _ = camera.project(direction(uv[:, 0], uv[:, 1] + step_rad))
-    j_ua, j_va = (px_a - px0).T / step_rad
-    j_up, j_vp = (px_p - px0).T / step_rad
-    # J^T = [[du/da, dv/da], [du/dp, dv/dp]] takes (g_u, g_v) to (g_a, g_p); u grows with azimuth and v with
-    # the polar angle wherever the model is defined (det > 0): behind the camera or folded it is not
-    det = j_ua * j_vp - j_up * j_va
-    good = (r > 0) & np.isfinite(det) & (det > 0)
-    safe = np.where(good, det, 1.0)
-    g_u = (j_vp * g_a - j_va * g_p) / safe
-    g_v = (-j_up * g_a + j_ua * g_p) / safe
-    norm_uv = np.hypot(g_u, g_v)
-    scale = np.hypot(g_a, g_p) / np.where(norm_uv > 0, norm_uv, 1.0)
-    good &= np.isfinite(g_u) & np.isfinite(g_v)
-    return np.where(good, g_u * scale, g_a), np.where(good, g_v * scale, g_p)
