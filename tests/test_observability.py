@@ -23,7 +23,7 @@ class QuadraticProblem:
     def free_parameters(self) -> NDArray[np.bool_]:
         return np.ones(6, dtype=bool)
 
-    def evaluate(self, x: NDArray[np.floating]) -> NDArray[np.float64]:
+    def evaluate(self, x: NDArray[np.floating], frames: list[int] | None = None) -> NDArray[np.float64]:
         d = np.atleast_2d(x) - self.x_star
         if self.ridge:
             d = d.copy()
@@ -42,7 +42,7 @@ def test_profile_drop_of_a_separable_quadratic_is_its_curvature_times_the_step_s
 def test_translation_profile_is_the_shift_against_the_median_turn() -> None:
     """Shifts of 15 cm lose 0.01, 0.03, 0.2 x 0.15^2; the median turn of 0.5 deg loses 2e-3 x 0.5^2."""
     problem = QuadraticProblem([1e-3, 2e-3, 4e-3, 0.01, 0.03, 0.2])
-    ratios = translation_profile(problem, problem.x_star, 0.8, 0.15, 0.5)  # type: ignore[arg-type]
+    ratios = translation_profile(problem, problem.x_star, 0.15, 0.5)  # type: ignore[arg-type]
     np.testing.assert_allclose(ratios, [0.45, 1.35, 9.0], rtol=1e-3)
     assert weak_axes(ratios, 1.0) == ["x"]
     assert weak_axes(ratios, 2.0) == ["x", "y"]
@@ -51,7 +51,7 @@ def test_translation_profile_is_the_shift_against_the_median_turn() -> None:
 def test_a_shift_the_rotation_can_imitate_loses_nothing() -> None:
     """On the ridge, moving x 15 cm is fully made up by turning about y: the profile is flat along x."""
     problem = QuadraticProblem([1e-2, 1e-2, 1e-2, 0.0, 0.5, 0.5], ridge=4.0)  # 15 cm = 0.6 deg about y
-    ratios = translation_profile(problem, problem.x_star, 0.8, 0.15, 0.5)  # type: ignore[arg-type]
+    ratios = translation_profile(problem, problem.x_star, 0.15, 0.5)  # type: ignore[arg-type]
     assert abs(ratios[0]) < 1e-3
     assert ratios[1] > 1.0 and ratios[2] > 1.0
     assert weak_axes(ratios, 1.0) == ["x"]
@@ -59,5 +59,36 @@ def test_a_shift_the_rotation_can_imitate_loses_nothing() -> None:
 
 def test_no_turn_costs_anything_gives_nan() -> None:
     problem = QuadraticProblem([0.0, 0.0, 0.0, 0.5, 0.5, 0.5])
-    ratios = translation_profile(problem, problem.x_star, 0.8, 0.15, 0.5)  # type: ignore[arg-type]
+    ratios = translation_profile(problem, problem.x_star, 0.15, 0.5)  # type: ignore[arg-type]
     assert np.all(np.isnan(ratios)) and weak_axes(ratios, 1.0) == []
+
+
+class TwoFrameProblem:
+    """Frames whose objectives differ: frame f scores 0.8 - sum_i k_f,i (x_i - x*_i)^2; the objective of
+    several frames is their mean."""
+
+    def __init__(self, curvatures: list[list[float]]) -> None:
+        self.k = np.asarray(curvatures, dtype=np.float64)
+        self.x_star = np.array([0.3, -0.2, 0.1, 0.02, -0.05, 0.04])
+        self.lower = np.array([-5.0] * 3 + [-0.5] * 3)
+        self.upper = -self.lower
+
+    def free_parameters(self) -> NDArray[np.bool_]:
+        return np.ones(6, dtype=bool)
+
+    def evaluate(self, x: NDArray[np.floating], frames: list[int] | None = None) -> NDArray[np.float64]:
+        d2 = (np.atleast_2d(x) - self.x_star) ** 2
+        chosen = range(len(self.k)) if frames is None else frames
+        return np.asarray(np.mean([0.8 - (d2 * self.k[f]).sum(axis=1) for f in chosen], axis=0))
+
+
+def test_profile_on_a_subset_of_frames_measures_those_frames() -> None:
+    """Frame 0 fixes x weakly (ratio 0.45), frame 1 firmly (ratio 9): the profile of frame 0 alone, of frame 1
+    alone and of both are each their own objective's."""
+    problem = TwoFrameProblem([[1e-3, 2e-3, 4e-3, 0.01, 0.03, 0.2], [1e-3, 2e-3, 4e-3, 0.2, 0.03, 0.01]])
+    alone_0 = translation_profile(problem, problem.x_star, 0.15, 0.5, frames=[0])  # type: ignore[arg-type]
+    alone_1 = translation_profile(problem, problem.x_star, 0.15, 0.5, frames=[1])  # type: ignore[arg-type]
+    both = translation_profile(problem, problem.x_star, 0.15, 0.5)  # type: ignore[arg-type]
+    np.testing.assert_allclose(alone_0, [0.45, 1.35, 9.0], rtol=1e-3)
+    np.testing.assert_allclose(alone_1, [9.0, 1.35, 0.45], rtol=1e-3)
+    np.testing.assert_allclose(both, [4.725, 1.35, 4.725], rtol=1e-3)

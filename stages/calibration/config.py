@@ -106,7 +106,9 @@ class CalibrationConfig:
             about the camera's axes (the paired tolerances 0.5 deg / 15 cm). Below
             ``weak_translation_ratio`` the axis is named in ``CalibrationResult.weak_translation_axes``: the
             log fixes that component less well than its rotation, treat it as rough. It never changes the
-            estimate, only the verdict (``weak_move_max_m``); ``profile_translation_m`` 0 turns it off. Runtime 1-2 s.
+            estimate, only the verdict (``weak_move_max_m``); ``profile_translation_m`` 0 turns it off. It is measured
+            on the first run's swarm frames (``swarm_frames``, all frames up to that many), so a long log's profile
+            costs what ten frames' does.
             Measured (defaults from each log's start, 6 DoF; camera x / y / z ratio, the estimate's error
             along that axis in brackets, cm):
             - KITTI: 0.15 (6.9), 2.02 (2.1), 0.43 (-0.9);
