@@ -130,7 +130,7 @@ def load_sim(name: str, out: Path, quick: bool) -> Case:
         tree = load_tf_tree(reader)
         col = collect_frames(reader, truth["lidar_topic"], pair["camera_topic"], config, tree)
         T_tf = initial_guess(tree, col.lidar_frame, col.camera_frame, None)
-    solver = CalibrationConfig()
+    solver = solver_config(config)  # what ``fleetcal calibrate --feature intensity`` runs
     return Case(col.frames, np.asarray(pair["T_camera_lidar"], dtype=np.float64), T_tf,
                 _quick(solver) if quick else solver)
 
