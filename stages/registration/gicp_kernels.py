@@ -23,7 +23,7 @@ ROBUST_HUBER = 1
 ROBUST_CAUCHY = 2
 
 
-@njit(**NJIT_FLAGS)
+@njit(inline="always", **NJIT_FLAGS)
 def robust_weight_and_cost(r2: float, kind: int, scale: float) -> tuple[float, float]:
     """(IRLS weight d rho / d r^2, rho(r^2)) for a squared Mahalanobis residual r^2."""
     if kind == ROBUST_HUBER:
@@ -53,7 +53,7 @@ def residual_jacobian(
         J_out[r, 5] = -T[r, 2]
 
 
-@njit(**NJIT_FLAGS)
+@njit(inline="always", **NJIT_FLAGS)
 def _accumulate(
     a: np.ndarray, C_A: np.ndarray, b: np.ndarray, C_B: np.ndarray, T: np.ndarray, robust_kind: int,
     robust_scale: float, H: np.ndarray, g: np.ndarray,
