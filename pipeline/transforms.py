@@ -2,6 +2,10 @@
 
 Quaternions are scalar-last ``(qx, qy, qz, qw)`` as in ROS. Euler angles are xyz-extrinsic
 (roll about x, then pitch about y, then yaw about z, all about fixed axes), in degrees.
+
+Quaternions and rotation vectors convert in NumPy; SciPy's ``Rotation`` (Euler angles, screw motions,
+slerp) is imported by the functions that use it, as importing ``scipy.spatial`` takes a quarter of a
+second that ``fleetcal map`` does not otherwise spend.
 """
 
 from __future__ import annotations
@@ -12,7 +16,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation, Slerp
 
 from fleetcal.pipeline.errors import TransformError
 
@@ -51,31 +54,73 @@ def from_quat(translation: NDArray[np.float64] | list[float], quat_xyzw: NDArray
     norm = float(np.linalg.norm(q))
     if norm < 1e-6:
         raise TransformError("transform has a zero-length quaternion")
-    return make_T(Rotation.from_quat(q / norm).as_matrix(), t)
+    x, y, z, w = q / norm
+    R = np.array([
+        [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - z * w), 2.0 * (x * z + y * w)],
+        [2.0 * (x * y + z * w), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - x * w)],
+        [2.0 * (x * z - y * w), 2.0 * (y * z + x * w), 1.0 - 2.0 * (x * x + y * y)],
+    ])  # fmt: skip
+    return make_T(R, t)
 
 
 def to_quat(T: Mat4) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """(translation (3,), quaternion (4,) scalar-last with qw >= 0) of a transform."""
-    q = Rotation.from_matrix(T[:3, :3]).as_quat()
+    """(translation (3,), quaternion (4,) scalar-last with qw >= 0) of a transform.
+
+    Shepperd's method: the component with the largest magnitude comes from the diagonal, the others
+    from sums and differences of the off-diagonal terms divided by it."""
+    R = np.asarray(T, dtype=np.float64)[:3, :3]
+    trace = R[0, 0] + R[1, 1] + R[2, 2]
+    largest = int(np.argmax([trace, R[0, 0], R[1, 1], R[2, 2]]))
+    if largest == 0:
+        w = 0.5 * np.sqrt(max(1.0 + trace, 0.0))
+        q = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1], 4.0 * w * w]) / (4.0 * w)
+    elif largest == 1:
+        x = 0.5 * np.sqrt(max(1.0 + R[0, 0] - R[1, 1] - R[2, 2], 0.0))
+        q = np.array([4.0 * x * x, R[0, 1] + R[1, 0], R[0, 2] + R[2, 0], R[2, 1] - R[1, 2]]) / (4.0 * x)
+    elif largest == 2:
+        y = 0.5 * np.sqrt(max(1.0 - R[0, 0] + R[1, 1] - R[2, 2], 0.0))
+        q = np.array([R[0, 1] + R[1, 0], 4.0 * y * y, R[1, 2] + R[2, 1], R[0, 2] - R[2, 0]]) / (4.0 * y)
+    else:
+        z = 0.5 * np.sqrt(max(1.0 - R[0, 0] - R[1, 1] + R[2, 2], 0.0))
+        q = np.array([R[0, 2] + R[2, 0], R[1, 2] + R[2, 1], 4.0 * z * z, R[1, 0] - R[0, 1]]) / (4.0 * z)
+    q /= np.linalg.norm(q)
     if q[3] < 0:
         q = -q
-    return T[:3, 3].copy(), q
+    return np.asarray(T, dtype=np.float64)[:3, 3].copy(), q
 
 
 def from_xyz_rpy(x: float, y: float, z: float, roll_deg: float, pitch_deg: float, yaw_deg: float) -> Mat4:
     """Transform from metres and xyz-extrinsic Euler angles in degrees."""
+    from scipy.spatial.transform import Rotation
+
     R = Rotation.from_euler("xyz", [roll_deg, pitch_deg, yaw_deg], degrees=True).as_matrix()
     return make_T(R, [x, y, z])
 
 
 def to_rpy_deg(T: Mat4) -> NDArray[np.float64]:
     """xyz-extrinsic Euler angles (roll, pitch, yaw) in degrees."""
+    from scipy.spatial.transform import Rotation
+
     return np.asarray(Rotation.from_matrix(T[:3, :3]).as_euler("xyz", degrees=True))
 
 
 def exp_se3(xi: NDArray[np.float64]) -> Mat4:
     """Transform from a 6-vector (rotation vector rad (3), translation m (3)), rotation and translation decoupled."""
-    return make_T(Rotation.from_rotvec(xi[:3]).as_matrix(), xi[3:6])
+    xi = np.asarray(xi, dtype=np.float64)
+    return make_T(rotvec_matrix(xi[:3]), xi[3:6])
+
+
+def rotvec_matrix(rotvec: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(3, 3) rotation matrix of a rotation vector (axis times angle, rad): Rodrigues' formula
+    R = I + sin(t)/t K + (1 - cos t)/t^2 K^2, K the cross-product matrix, the second coefficient as
+    (sin(t/2) / (t/2))^2 / 2 (no cancellation at small angles)."""
+    w = np.asarray(rotvec, dtype=np.float64)
+    theta = float(np.sqrt(w @ w))
+    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if theta < 1e-8:
+        return np.eye(3) + K + 0.5 * (K @ K)
+    half = 0.5 * theta
+    return np.eye(3) + (np.sin(theta) / theta) * K + 0.5 * (np.sin(half) / half) ** 2 * (K @ K)
 
 
 def _screw_terms(theta: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -94,6 +139,8 @@ def screw_apply(twist: NDArray[np.floating], dt_s: NDArray[np.floating],
     tw = np.asarray(twist, dtype=np.float64).ravel()
     dt = np.asarray(dt_s, dtype=np.float64).ravel()
     v, w = tw[:3], tw[3:]
+    from scipy.spatial.transform import Rotation
+
     pts = Rotation.from_rotvec(w[None, :] * dt[:, None]).apply(np.asarray(points_xyz, dtype=np.float64))
     a, b = _screw_terms(np.linalg.norm(w) * np.abs(dt))
     wv = np.cross(w, v)
@@ -105,6 +152,8 @@ def screw_apply(twist: NDArray[np.floating], dt_s: NDArray[np.floating],
 def twist_of(T_start_end: Mat4, duration_s: float) -> NDArray[np.float64]:
     """The constant body twist (vx, vy, vz m/s, wx, wy, wz rad/s) whose motion over ``duration_s``
     is ``T_start_end`` (SE(3) logarithm / duration; inverse of ``screw_apply``)."""
+    from scipy.spatial.transform import Rotation
+
     T = np.asarray(T_start_end, dtype=np.float64)
     phi = Rotation.from_matrix(T[:3, :3]).as_rotvec()
     a, b = _screw_terms(np.array([np.linalg.norm(phi)]))
@@ -164,6 +213,8 @@ class _Edge:
         t0, t1 = self.stamps_ns[i - 1], self.stamps_ns[i]
         T0, T1 = self.transforms[i - 1], self.transforms[i]
         s = (stamp_ns - t0) / (t1 - t0) if t1 != t0 else 0.0
+        from scipy.spatial.transform import Rotation, Slerp
+
         rots = Rotation.from_matrix(np.stack([T0[:3, :3], T1[:3, :3]]))
         R = Slerp([0.0, 1.0], rots)([s]).as_matrix()[0]
         return make_T(R, (1 - s) * T0[:3, 3] + s * T1[:3, 3])

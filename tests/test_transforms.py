@@ -16,6 +16,7 @@ from fleetcal.pipeline.transforms import (
     invert,
     is_rigid,
     rotation_error_deg,
+    rotvec_matrix,
     screw_apply,
     to_quat,
     to_rpy_deg,
@@ -47,6 +48,25 @@ def test_quaternion_round_trip_scalar_last() -> None:
     # 90 deg about z, scalar-last
     T = from_quat([1, 2, 3], [0, 0, np.sqrt(0.5), np.sqrt(0.5)])
     assert np.allclose(apply(T, np.array([[1.0, 0, 0]])), [[1, 3, 3]])
+
+
+def test_rotation_vectors_and_quaternions_match_scipy() -> None:
+    """The NumPy conversions (Rodrigues, Shepperd) against SciPy's Rotation, from tiny angles to half
+    turns about each axis."""
+    rng = np.random.default_rng(7)
+    scales = rng.choice([1e-12, 1e-9, 1e-6, 1e-3, 1.0, 3.0], size=(300, 1))
+    rotvecs = [*(rng.normal(size=(300, 3)) * scales), *(np.pi * np.eye(3)), np.zeros(3)]
+    for rotvec in rotvecs:
+        R = Rotation.from_rotvec(rotvec).as_matrix()
+        np.testing.assert_allclose(rotvec_matrix(rotvec), R, atol=1e-14)
+        T = np.eye(4)
+        T[:3, :3] = R
+        want = Rotation.from_matrix(R).as_quat()
+        want = -want if want[3] < 0 else want
+        got = to_quat(T)[1]
+        assert got[3] >= 0
+        assert np.allclose(got, want, atol=1e-14) or (abs(want[3]) < 1e-12 and np.allclose(got, -want, atol=1e-14))
+        np.testing.assert_allclose(from_quat([0.0, 0.0, 0.0], want)[:3, :3], R, atol=1e-14)
 
 
 def test_euler_convention_is_xyz_extrinsic_degrees() -> None:

@@ -15,7 +15,7 @@ from numba import njit
 from fleetcal.pipeline.numba_flags import NJIT_FLAGS
 
 
-@njit(**NJIT_FLAGS)
+@njit(inline="always", **NJIT_FLAGS)
 def _local_covariance(points: np.ndarray, nbrs: np.ndarray, out: np.ndarray) -> None:
     """C^L: population covariance (1/k) of the k neighbour positions, written into out (3, 3)."""
     k = nbrs.shape[0]
@@ -55,7 +55,7 @@ def _local_covariance(points: np.ndarray, nbrs: np.ndarray, out: np.ndarray) -> 
     out[2, 1] = out[1, 2]
 
 
-@njit(**NJIT_FLAGS)
+@njit(inline="always", **NJIT_FLAGS)
 def _eigvec_of(A: np.ndarray, lam: float) -> tuple[float, float, float]:
     """Unit eigenvector of symmetric A (3, 3) for eigenvalue lam.
 
@@ -87,7 +87,7 @@ def _eigvec_of(A: np.ndarray, lam: float) -> tuple[float, float, float]:
     return c2x / s, c2y / s, c2z / s
 
 
-@njit(**NJIT_FLAGS)
+@njit(inline="always", **NJIT_FLAGS)
 def sym3_eigh(A: np.ndarray, vals: np.ndarray, vecs: np.ndarray) -> None:
     """Eigen-decomposition of a symmetric 3x3 matrix, like ``np.linalg.eigh``: ascending values,
     unit eigenvectors in the columns of vecs. Closed form (trigonometric eigenvalues, cross-product

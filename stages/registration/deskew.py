@@ -15,7 +15,6 @@ import dataclasses
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from fleetcal.pipeline.point_times import PointTimes, classify_point_times
 from fleetcal.pipeline.transforms import screw_apply, twist_of
@@ -53,6 +52,8 @@ def deskew_pointset(scan: PointSet, twist: NDArray[np.floating]) -> PointSet:
     if scan.times_s is None:
         raise ValueError("deskew_pointset needs a scan with per-point times")
     points = deskew_points(scan.points_xyz, scan.times_s, twist)
+    from scipy.spatial.transform import Rotation  # imported on first use: scipy.spatial is slow to import
+
     rotations = Rotation.from_rotvec(np.asarray(twist, dtype=np.float64)[3:][None, :] * scan.times_s[:, None])
     R = rotations.as_matrix()
     covariances = np.einsum("nij,njk,nlk->nil", R, scan.covariances, R)

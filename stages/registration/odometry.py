@@ -35,7 +35,13 @@ from fleetcal.pipeline.transforms import apply, invert, rotation_error_deg, tran
 from fleetcal.stages.registration.config import RegistrationConfig
 from fleetcal.stages.registration.deskew import deskew_points, deskew_pointset, sweep_twist, sweep_usable
 from fleetcal.stages.registration.gicp import register
-from fleetcal.stages.registration.pointset import PointSet, moved_rows, pointset_from_frame, pointset_from_rows
+from fleetcal.stages.registration.pointset import (
+    PointSet,
+    finite_rows,
+    moved_rows,
+    pointset_from_frame,
+    pointset_from_rows,
+)
 from fleetcal.stages.registration.voxel import VoxelSums, voxel_downsample, voxel_keys
 
 log = logging.getLogger(__name__)
@@ -110,7 +116,6 @@ class VoxelMap:
         if pts.ndim != 2 or pts.shape[1] != 3:
             raise InputError(f"map points must be (N, 3), got {pts.shape}")
         channels = {} if channels is None else channels
-        finite = np.all(np.isfinite(pts), axis=1)
         values = np.zeros((pts.shape[0], 3 + len(MAP_CHANNELS)))
         values[:, :3] = pts
         present = set()
@@ -119,7 +124,9 @@ class VoxelMap:
                 values[:, 3 + col] = np.asarray(channels[name], dtype=np.float64)
                 present.add(name)
         self._present = present if self._present is None else self._present & present
-        values = values[finite & np.all(np.isfinite(values), axis=1)]
+        finite = finite_rows(values)
+        if not finite.all():
+            values = values[finite]
         if values.shape[0] == 0:
             return
         self._sums.add(voxel_keys(values[:, :3], self.voxel_size_m), values)

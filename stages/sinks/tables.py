@@ -93,10 +93,32 @@ MAP_XYZ_FIELDS = [("x_m", pa.float32()), ("y_m", pa.float32()), ("z_m", pa.float
 MAP_CHANNEL_FIELDS = {"intensity": pa.float32(), "r": pa.uint8(), "g": pa.uint8(), "b": pa.uint8()}
 
 
+_NUMPY_TYPES: dict[pa.DataType, type[np.generic]] = {
+    pa.float32(): np.float32,
+    pa.float64(): np.float64,
+    pa.int32(): np.int32,
+    pa.int64(): np.int64,
+    pa.uint8(): np.uint8,
+}
+"""Arrow types whose arrays ``column`` builds from a NumPy buffer."""
+
+
+def column(values: Sequence[Any] | np.ndarray, dtype: pa.DataType) -> pa.Array:
+    """An Arrow array of ``values`` as ``dtype`` (None: null). Numbers without nulls go in through a
+    NumPy buffer (``pa.Array.from_buffers``), as ``pa.array`` imports pandas where it is installed (a
+    third of a second on its first call); other values go through ``pa.array``."""
+    numpy_type = _NUMPY_TYPES.get(dtype)
+    if numpy_type is not None and (isinstance(values, np.ndarray) or all(v is not None for v in values)):
+        data = np.ascontiguousarray(values, dtype=numpy_type)
+        if data.ndim == 1:
+            return pa.Array.from_buffers(dtype, data.shape[0], [None, pa.py_buffer(data)])
+    return pa.array(values, type=dtype)
+
+
 def write_rows(rows: Sequence[Mapping[str, Any]], schema: pa.Schema, path: str | Path) -> Path:
     """Write dict rows with exactly ``schema``'s columns (missing keys become null) atomically."""
-    columns = {field.name: [row.get(field.name) for row in rows] for field in schema}
-    table = pa.Table.from_pydict(columns, schema=schema)
+    columns = [column([row.get(field.name) for row in rows], field.type) for field in schema]
+    table = pa.Table.from_arrays(columns, schema=schema)
     return write_table(table, path)
 
 
@@ -111,7 +133,7 @@ def write_table(table: pa.Table, path: str | Path) -> Path:
 def map_table(points_xyz: np.ndarray, channels: Mapping[str, np.ndarray]) -> pa.Table:
     """``map.parquet`` table: float32 x_m, y_m, z_m (map frame) plus intensity / r, g, b when present."""
     pts = np.asarray(points_xyz, dtype=np.float32).reshape(-1, 3)
-    arrays = [pa.array(pts[:, i]) for i in range(3)]
+    arrays = [column(pts[:, i], pa.float32()) for i in range(3)]
     fields = [pa.field(name, dtype) for name, dtype in MAP_XYZ_FIELDS]
     for name, dtype in MAP_CHANNEL_FIELDS.items():
         if name in channels:
@@ -120,6 +142,6 @@ def map_table(points_xyz: np.ndarray, channels: Mapping[str, np.ndarray]) -> pa.
                 values = np.clip(np.rint(values), 0, 255).astype(np.uint8)
             else:
                 values = values.astype(np.float32)
-            arrays.append(pa.array(values))
+            arrays.append(column(values, dtype))
             fields.append(pa.field(name, dtype))
     return pa.Table.from_arrays(arrays, schema=pa.schema(fields))
