@@ -120,7 +120,7 @@ def sim_table(names: list[str], metrics: list[str]) -> None:
     import tempfile
 
     from fleetcal.pipeline.transforms import rotation_error_deg, translation_error_m
-    from fleetcal.stages.calibration import CalibrationConfig
+    from fleetcal.stages.calibration import SolverConfig
     from tests.test_calibration_sim import simulated_frames
 
     print(f"\n{'simulated':18s} {'metric':9s} {'rot_deg':>8s} {'trans_m':>8s} {'score':>8s} {'init':>8s} "
@@ -130,7 +130,7 @@ def sim_table(names: list[str], metrics: list[str]) -> None:
             scene, feature, deg, metres, beams = SIM_CASES[name]
             frames, T_init, T_true = simulated_frames(Path(tmp), scene, feature, 10, beams)
             for metric in metrics:
-                cfg = CalibrationConfig(metric=metric, search_deg=deg, search_m=metres, repeats=3)
+                cfg = SolverConfig(metric=metric, search_deg=deg, search_m=metres, repeats=3)
                 result = calibrate(frames, T_init, cfg)
                 rot = rotation_error_deg(result.T_camera_lidar, T_true)
                 trans = translation_error_m(result.T_camera_lidar, T_true)
@@ -144,7 +144,7 @@ def rings_study(n: int) -> None:
     import tempfile
 
     from fleetcal.pipeline.transforms import rotation_error_deg, translation_error_m
-    from fleetcal.stages.calibration import CalibrationConfig
+    from fleetcal.stages.calibration import SolverConfig
     from tests.test_calibration_sim import simulated_frames
 
     print(f"\nsimulated VLP-16 (16 rings x 1800 columns, street, intensity) from 2 deg / 10 cm, {n} starts")
@@ -155,7 +155,7 @@ def rings_study(n: int) -> None:
         for seed in range(7, 7 + n):
             T_start = perturb(T_true, 2.0, 0.1, seed=seed)
             for mode in ("auto", "off"):
-                result = calibrate(frames, T_start, CalibrationConfig(repeats=3, ring_smoothing=mode))
+                result = calibrate(frames, T_start, SolverConfig(repeats=3, ring_smoothing=mode))
                 rot = rotation_error_deg(result.T_camera_lidar, T_true)
                 trans = translation_error_m(result.T_camera_lidar, T_true)
                 within[mode] += rot <= 0.5
@@ -171,7 +171,7 @@ def sweep_study(speeds: list[float]) -> None:
     import tempfile
 
     from fleetcal.pipeline.transforms import rotation_error_deg, translation_error_m
-    from fleetcal.stages.calibration import CalibrationConfig
+    from fleetcal.stages.calibration import SolverConfig
     from tests.test_calibration_sim import simulated_frames
 
     print("\nmotion during the sweep (simulated street, not de-skewed), from 5 deg / 0.5 m, box 10 deg / 1 m")
@@ -181,7 +181,7 @@ def sweep_study(speeds: list[float]) -> None:
             for point_times in (True, False):
                 frames, T_init, T_true = simulated_frames(Path(tmp), "street", "intensity", 10,
                                                           skewed_at_m_s=speed, point_times=point_times)
-                result = calibrate(frames, T_init, CalibrationConfig(search_deg=10.0, search_m=1.0, repeats=3))
+                result = calibrate(frames, T_init, SolverConfig(search_deg=10.0, search_m=1.0, repeats=3))
                 rot = rotation_error_deg(result.T_camera_lidar, T_true)
                 trans = translation_error_m(result.T_camera_lidar, T_true)
                 label = "point times" if point_times else "scan stamp"

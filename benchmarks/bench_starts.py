@@ -47,7 +47,7 @@ from scipy.spatial.transform import Rotation
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from fleetcal.pipeline.config import Config
-from fleetcal.stages.calibration import CalibrationConfig, CalibrationFrame, calibrate
+from fleetcal.stages.calibration import CalibrationFrame, SolverConfig, calibrate
 from fleetcal.workflows.calibrate import solver_config
 from tests.test_calibration_synthetic import perturb
 
@@ -77,7 +77,7 @@ class Case:
     frames: list[CalibrationFrame]
     T_true: Mat4
     T_tf: Mat4
-    config: CalibrationConfig
+    config: SolverConfig
 
 
 @dataclass
@@ -135,7 +135,7 @@ def load_sim(name: str, out: Path, quick: bool) -> Case:
                 _quick(solver) if quick else solver)
 
 
-def _quick(config: CalibrationConfig) -> CalibrationConfig:
+def _quick(config: SolverConfig) -> SolverConfig:
     return replace(config, n_particles=60, max_iterations=40, repeats=1, confirm_repeats=0)
 
 

@@ -142,7 +142,7 @@ class CalibrationConfig:
         translation: ``estimate`` (6 DoF), ``hold`` (rotation only, the translation kept at the initial
             guess's) or ``auto`` (default): estimated, but held where the seeded 6-DoF runs do not confirm
             one another and the box is within 5 deg / 0.5 m (the initial guess is trusted); evidence in
-            ``stages.calibration.config.CalibrationConfig``.
+            ``stages.calibration.config.SolverConfig``.
         blur_sigma_px: Gaussian blur of camera images before the Sobel, pixels (0: max(2, width / 620)).
         seed: random seed.
         repeats: seeded optimiser runs; their spread is the reported uncertainty.

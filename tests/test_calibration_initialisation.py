@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from fleetcal.pipeline.transforms import rotation_error_deg
-from fleetcal.stages.calibration.config import CalibrationConfig
+from fleetcal.stages.calibration.config import SolverConfig
 from fleetcal.stages.calibration.frame import CalibrationFrame
 from fleetcal.stages.calibration.hand_eye import HandEyeRotation
 from fleetcal.stages.calibration.initialisation import (
@@ -34,7 +34,7 @@ def _motion(R: np.ndarray, free_axis: np.ndarray | None) -> HandEyeRotation:
 def test_a_start_around_a_rotation_from_motion(frames: list[CalibrationFrame]) -> None:
     T_true = true_T_camera_lidar()
     R_motion = Rotation.from_rotvec([2.0, -1.5, 1.0], degrees=True).as_matrix() @ T_true[:3, :3]
-    guess = search_initial_guess(frames, CalibrationConfig(), _motion(R_motion, None))
+    guess = search_initial_guess(frames, SolverConfig(), _motion(R_motion, None))
     assert guess.source == "motion" and not guess.ambiguous
     assert rotation_error_deg(guess.T_camera_lidar, T_true) < 2.0 < rotation_error_deg(
         np.pad(R_motion, ((0, 1), (0, 1))) + np.diag([0, 0, 0, 1.0]), T_true)
@@ -44,7 +44,7 @@ def test_a_start_along_the_axis_a_straight_drive_leaves_free(frames: list[Calibr
     """Travel along lidar x fixes two angles; the roll about x is searched all around."""
     T_true = true_T_camera_lidar()
     R_start = T_true[:3, :3] @ Rotation.from_rotvec([130.0, 0.0, 0.0], degrees=True).as_matrix()
-    guess = search_initial_guess(frames, CalibrationConfig(), _motion(R_start, np.array([1.0, 0.0, 0.0])))
+    guess = search_initial_guess(frames, SolverConfig(), _motion(R_start, np.array([1.0, 0.0, 0.0])))
     assert rotation_error_deg(guess.T_camera_lidar, T_true) < 2.0
     assert guess.candidates > 360 / 15
 

@@ -19,7 +19,7 @@ from fleetcal.pipeline.errors import ProcessingError
 from fleetcal.pipeline.transforms import invert, rotation_error_deg, translation_error_m
 from fleetcal.readers.frames import load_tf_tree
 from fleetcal.readers.open import open_log
-from fleetcal.stages.calibration import CalibrationConfig, CalibrationFrame, CalibrationResult, calibrate
+from fleetcal.stages.calibration import CalibrationFrame, CalibrationResult, SolverConfig, calibrate
 from fleetcal.stages.calibration.calibrator import resolve_auto_rules
 from fleetcal.stages.calibration.frame import build_frame
 from fleetcal.workflows.calibrate import solver_config
@@ -200,7 +200,7 @@ def test_kitti_search_box_away_from_the_scan_is_a_clear_error() -> None:
     # camera turned to look at the sky
     T_up[:3, :3] = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]]) @ T_up[:3, :3]
     with pytest.raises(ProcessingError, match="lidar points"):
-        calibrate(problem.frames, T_up, CalibrationConfig(search_deg=2.0, search_m=0.2, n_particles=20))
+        calibrate(problem.frames, T_up, SolverConfig(search_deg=2.0, search_m=0.2, n_particles=20))
 
 
 @pytest.mark.slow

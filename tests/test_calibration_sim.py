@@ -5,7 +5,7 @@ The logs are written by the simulator (64 beams, 512 columns, 640x360 pinhole im
 workflow (pairing, ego-motion from ``/tf``, lidar feature, image gradients) and ``calibrate`` starts
 from the log's ``/tf_static``, which the simulator perturbed by 5 deg / 0.5 m on a random axis.
 
-Measured (``.venv/bin/python`` loop over these helpers, 10 frames, default ``CalibrationConfig``):
+Measured (``.venv/bin/python`` loop over these helpers, 10 frames, default ``SolverConfig``):
 street, 1280x720 x 1024 columns: range 1.43 deg / 23.9 cm (``fleetcal calibrate --json``);
 street, 640x360 x 512 columns: range 3.93 deg / 30.4 cm, intensity 0.249 deg / 0.96 cm.
 In the simulator the lidar intensity is the reflectivity that also paints the image, so the
@@ -28,7 +28,7 @@ from fleetcal.pipeline.config import Config
 from fleetcal.pipeline.transforms import rotation_error_deg, translation_error_m
 from fleetcal.readers.frames import load_tf_tree
 from fleetcal.readers.open import open_log
-from fleetcal.stages.calibration import CalibrationConfig, CalibrationFrame, calibrate
+from fleetcal.stages.calibration import CalibrationFrame, SolverConfig, calibrate
 from fleetcal.workflows.calibrate import collect_frames, initial_guess
 from fleetcal.workflows.simulator.truth import load_truth, truth_path_for
 from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log
@@ -100,7 +100,7 @@ def test_street_intensity_recovers_extrinsic_from_5deg_50cm(sim_dir: Path) -> No
     assert rotation_error_deg(T_init, T_true) == pytest.approx(5.0, abs=1e-6)
     assert translation_error_m(T_init, T_true) == pytest.approx(0.5, abs=1e-6)
     assert any(f.T_lidar_motion is not None for f in frames)  # ego-motion from /tf is applied
-    result = calibrate(frames, T_init, CalibrationConfig())
+    result = calibrate(frames, T_init, SolverConfig())
     rot = rotation_error_deg(result.T_camera_lidar, T_true)
     trans = translation_error_m(result.T_camera_lidar, T_true)
     assert rot <= 0.35, f"rotation error {rot:.3f} deg"
@@ -112,16 +112,16 @@ def test_street_intensity_recovers_extrinsic_from_5deg_50cm(sim_dir: Path) -> No
 def test_street_wide_box_reaches_the_issue_target_from_5deg_50cm(sim_dir: Path) -> None:
     """From 5 deg / 0.5 m off with a box that holds such an error (10 deg / 1 m, as on KITTI), the auto
     settings take lidar gradients on the lidar's own sphere with the least-squares fit, and the swarm
-    first explores against image gradients blurred 3x more (``CalibrationConfig.explore``): the street
+    first explores against image gradients blurred 3x more (``SolverConfig.explore``): the street
     target of 0.1 deg / 2 cm, confirmed by another seeded run (measured 0.049 deg / 0.9 cm, 2 of the 3
     runs agree). Without exploring 1 of 6 seeded runs found the global optimum (the others stopped at
     3-10 deg / 0.5-1 m, scores 0.666-0.707 vs 0.750) and the estimate (0.060 deg / 1.0 cm) was
     ``suspect``. Algorithm 1's fit instead of lsq: 0.123 deg / 0.4 cm; the camera-centred sphere in the
     default 5 deg / 0.5 m box 0.249 deg / 1.0 cm."""
     frames, T_init, T_true = simulated_frames(sim_dir, "street", "intensity", 10)
-    config = CalibrationConfig(search_deg=10.0, search_m=1.0, repeats=3)
+    config = SolverConfig(search_deg=10.0, search_m=1.0, repeats=3)
     assert (config.viewpoint, config.fit, config.explores) == ("lidar", "lsq", True)
-    assert not CalibrationConfig().explores
+    assert not SolverConfig().explores
     result = calibrate(frames, T_init, config)
     assert result.verdict == "recalibrated", result.verdict_reason
     assert result.agreeing_repeats >= 1
@@ -136,7 +136,7 @@ def test_cylindrical_panorama_from_5deg_50cm(sim_dir: Path) -> None:
     the defaults: measured 0.111 deg / 2.5 cm (0.35 deg per pixel of azimuth)."""
     frames, T_init, T_true = simulated_frames(sim_dir, "street", "intensity", 10, panorama=True)
     assert frames[0].camera.distortion_model == "cylindrical"
-    result = calibrate(frames, T_init, CalibrationConfig())
+    result = calibrate(frames, T_init, SolverConfig())
     assert rotation_error_deg(result.T_camera_lidar, T_true) <= 0.3
     assert translation_error_m(result.T_camera_lidar, T_true) <= 0.05
     assert result.verdict == "recalibrated"
@@ -153,7 +153,7 @@ def test_rectified_stereo_images_give_the_cameras_own_extrinsic(sim_dir: Path) -
     the workflow's default, gave 0.082 deg / 1.2 cm from seeds 0, 1 and 2 (one run there is now ``suspect``)."""
     frames, T_init, T_true = simulated_frames(sim_dir, "street", "intensity", 10, rectified=True)
     assert frames[0].camera.R_rect is not None and frames[0].camera.distortion_model == "none"
-    config = CalibrationConfig()
+    config = SolverConfig()
     result = calibrate(frames, T_init, config)
     assert rotation_error_deg(result.T_camera_lidar, T_true) <= 0.3
     assert translation_error_m(result.T_camera_lidar, T_true) <= 0.05
@@ -171,7 +171,7 @@ def test_motion_during_the_sweep_is_compensated_point_by_point(sim_dir: Path) ->
     0.155 deg / 24.8 cm by the stamp (``bench_gom.py --sweep``: 5 and 10 m/s 0.06-0.08 deg / 2 cm vs 13-26
     cm; 1280x720 x 1024 columns from 2 deg / 10 cm: 0.17 deg / 2.1 cm vs 0.06 / 12 cm at 15 m/s, 0.26 / 2.4
     vs 0.48 / 60 at 10 m/s)."""
-    config = CalibrationConfig(search_deg=10.0, search_m=1.0, repeats=3)
+    config = SolverConfig(search_deg=10.0, search_m=1.0, repeats=3)
     errors = {}
     for point_times in (True, False):
         frames, T_init, T_true = simulated_frames(sim_dir, "street", "intensity", 10, skewed_at_m_s=15.0,
@@ -217,7 +217,7 @@ def test_open_scene_intensity_recovers_extrinsic(sim_dir: Path) -> None:
     (``gradient_viewpoint = camera``) gave 0.13 deg / 1.4 cm from this start, 0.05 / 1.1 and 1.77 / 18.7 from the
     other two."""
     frames, T_init, T_true = simulated_frames(sim_dir, "open", "intensity", 10)
-    result = calibrate(frames, T_init, CalibrationConfig(search_deg=10.0, search_m=1.0, repeats=2))
+    result = calibrate(frames, T_init, SolverConfig(search_deg=10.0, search_m=1.0, repeats=2))
     rot = rotation_error_deg(result.T_camera_lidar, T_true)
     trans = translation_error_m(result.T_camera_lidar, T_true)
     assert rot <= 0.3, f"rotation error {rot:.3f} deg"
@@ -234,7 +234,7 @@ def test_lidar_sphere_from_the_truth_stays_there_when_columns_are_dense(sim_dir:
     deg, 0.9-1.2 cm; 2048 columns 0.023 / 0.049 / 0.118 deg. Neither the image blur (2 -> 3, 4 px: worse),
     the gradient fit, K, the magnitude, the kept fraction nor the image-axis gradients removed it at 512."""
     frames, _, T_true = simulated_frames(sim_dir, "street", "intensity", 10, columns=1024)
-    config = CalibrationConfig(search_deg=1.0, search_m=0.1, translation="estimate")
+    config = SolverConfig(search_deg=1.0, search_m=0.1, translation="estimate")
     result = calibrate(frames, T_true, config)
     assert rotation_error_deg(result.T_camera_lidar, T_true) <= 0.1
     assert translation_error_m(result.T_camera_lidar, T_true) <= 0.015
@@ -248,7 +248,7 @@ def test_open_scene_geometric_features(sim_dir: Path, feature: str) -> None:
     each with components at the edge of the 5 deg / 0.5 m box) the estimate must carry the verdict
     ``suspect``, never a confident wrong one."""
     frames, T_init, T_true = simulated_frames(sim_dir, "open", feature, 10)
-    result = calibrate(frames, T_init, CalibrationConfig())
+    result = calibrate(frames, T_init, SolverConfig())
     rot = rotation_error_deg(result.T_camera_lidar, T_true)
     trans = translation_error_m(result.T_camera_lidar, T_true)
     within = rot <= 0.5 and trans <= 0.1
@@ -267,11 +267,11 @@ def test_vlp16_like_scan_is_not_fooled_by_its_rings(sim_dir: Path) -> None:
     the metric has at the truth (this start: 0.135 deg / 18.3 cm)."""
     frames, _, T_true = simulated_frames(sim_dir, "street", "intensity", 10, beams=16, columns=1800)
     T_init = perturb(T_true, 2.0, 0.1, seed=8)
-    result = calibrate(frames, T_init, CalibrationConfig(repeats=3))
+    result = calibrate(frames, T_init, SolverConfig(repeats=3))
     assert result.ring_smoothing_px == pytest.approx(4.0, rel=0.1)
     assert rotation_error_deg(result.T_camera_lidar, T_true) <= 0.3
     assert translation_error_m(result.T_camera_lidar, T_true) <= 0.25
-    aliased = calibrate(frames, T_init, CalibrationConfig(repeats=3, ring_smoothing="off"))
+    aliased = calibrate(frames, T_init, SolverConfig(repeats=3, ring_smoothing="off"))
     assert aliased.ring_smoothing_px == 0.0
     assert rotation_error_deg(aliased.T_camera_lidar, T_true) > 1.5  # one ring (2 deg) off in pitch
 
@@ -286,7 +286,7 @@ def test_rosette_lidar_calibrates_and_names_the_axis_it_cannot_fix(sim_dir: Path
     leave the vertical translation almost flat. With 16 lines x 1800 samples: 0.076 deg / 2.0 cm; not
     de-skewed at 15 m/s (point times used), same starts: 0.05-0.39 deg / 2.8-5.2 cm."""
     frames, _, T_true = simulated_frames(sim_dir, "street", "intensity", 10, beams=6, columns=4000, lidar="rosette")
-    result = calibrate(frames, perturb(T_true, 2.0, 0.1, seed=7), CalibrationConfig(repeats=3))
+    result = calibrate(frames, perturb(T_true, 2.0, 0.1, seed=7), SolverConfig(repeats=3))
     error_camera_m = (result.T_camera_lidar @ np.linalg.inv(T_true))[:3, 3]
     assert rotation_error_deg(result.T_camera_lidar, T_true) <= 0.5
     assert result.verdict == "recalibrated", result.verdict_reason
@@ -304,7 +304,7 @@ def test_sparse_lidar_rolled_to_the_camera_searches_by_angle_and_is_suspect(sim_
     verdict is ``suspect`` and says why."""
     frames, _, T_true = simulated_frames(sim_dir, "street", "intensity", 10, beams=32, columns=1024,
                                          lidar_roll_deg=45.0)
-    result = calibrate(frames, perturb(T_true, 2.0, 0.1, seed=7), CalibrationConfig(repeats=3))
+    result = calibrate(frames, perturb(T_true, 2.0, 0.1, seed=7), SolverConfig(repeats=3))
     assert result.ring_slant_deg == pytest.approx(44.0, abs=1.0) and result.sparse_rings
     assert result.verdict == "suspect" and "by angle, auto" in result.verdict_reason, result.verdict_reason
     assert rotation_error_deg(result.T_camera_lidar, T_true) <= 0.4
@@ -321,7 +321,7 @@ def test_sparse_lidar_estimate_is_within_bounds_or_flagged(sim_dir: Path) -> Non
     repeats, up to 3 more while unconfirmed)."""
     frames, _, T_true = simulated_frames(sim_dir, "street", "intensity", 10, beams=16)
     T_init = perturb(T_true, 2.0, 0.1, seed=7)
-    result = calibrate(frames, T_init, CalibrationConfig(repeats=3))
+    result = calibrate(frames, T_init, SolverConfig(repeats=3))
     rot = rotation_error_deg(result.T_camera_lidar, T_true)
     trans = translation_error_m(result.T_camera_lidar, T_true)
     within = rot <= 0.5 and trans <= 0.15

@@ -28,7 +28,7 @@ from fleetcal.pipeline.transforms import (
     rotation_error_deg,
     translation_error_m,
 )
-from fleetcal.stages.calibration import CalibrationConfig, CalibrationFrame, calibrate, compensate_ego_motion
+from fleetcal.stages.calibration import CalibrationFrame, SolverConfig, calibrate, compensate_ego_motion
 from fleetcal.stages.calibration.calibrator import agreeing_repeats, box_edge, resolve_auto_rules
 from fleetcal.stages.calibration.frame import build_frame, default_blur_sigma_px
 from fleetcal.stages.calibration.metrics import GomScorer, camera_params
@@ -197,7 +197,7 @@ def test_recovers_known_extrinsic_from_5deg_50cm(frame: CalibrationFrame) -> Non
     T_true = true_T_camera_lidar()
     T_init = perturb(T_true, 5.0, 0.5, seed=3)
     assert rotation_error_deg(T_init, T_true) == pytest.approx(5.0, abs=1e-6)
-    cfg = CalibrationConfig(search_deg=8.0, search_m=0.8, seed=1, repeats=2)
+    cfg = SolverConfig(search_deg=8.0, search_m=0.8, seed=1, repeats=2)
     result = calibrate([frame], T_init, cfg)
     assert rotation_error_deg(result.T_camera_lidar, T_true) < 0.3
     assert translation_error_m(result.T_camera_lidar, T_true) < 0.05
@@ -209,14 +209,14 @@ def test_recovers_known_extrinsic_from_5deg_50cm(frame: CalibrationFrame) -> Non
 
 def test_a_single_run_in_a_wide_box_is_suspect(frame: CalibrationFrame) -> None:
     """The same start and box with one seeded run: as accurate here, but nothing confirms it, and a wide box
-    holds far optima a single swarm can end in (``CalibrationConfig.repeats``)."""
+    holds far optima a single swarm can end in (``SolverConfig.repeats``)."""
     T_true = true_T_camera_lidar()
     T_init = perturb(T_true, 5.0, 0.5, seed=3)
-    result = calibrate([frame], T_init, CalibrationConfig(search_deg=8.0, search_m=0.8, seed=1))
+    result = calibrate([frame], T_init, SolverConfig(search_deg=8.0, search_m=0.8, seed=1))
     assert rotation_error_deg(result.T_camera_lidar, T_true) < 0.3
     assert result.verdict == "suspect"
     assert "one seeded run in a wide search box" in result.verdict_reason
-    trusted = calibrate([frame], T_init, CalibrationConfig(search_deg=5.0, search_m=0.5, seed=1))
+    trusted = calibrate([frame], T_init, SolverConfig(search_deg=5.0, search_m=0.5, seed=1))
     assert "one seeded run" not in trusted.verdict_reason  # a trusted box keeps a single run's verdict
 
 
@@ -224,7 +224,7 @@ def test_initial_guess_at_truth_is_confirmed(frame: CalibrationFrame) -> None:
     T_true = true_T_camera_lidar()
     # the paper's camera sphere, here exactly at the truth (the lidar's own sphere: 0.21 deg, its small bias
     # on this near scene)
-    cfg = CalibrationConfig(search_deg=2.0, search_m=0.2, n_particles=60, seed=0, repeats=2,
+    cfg = SolverConfig(search_deg=2.0, search_m=0.2, n_particles=60, seed=0, repeats=2,
                             gradient_viewpoint="camera")
     result = calibrate([frame], T_true, cfg)
     assert rotation_error_deg(result.T_camera_lidar, T_true) < 0.2
@@ -284,7 +284,7 @@ def test_held_translation_keeps_the_camera_centre_and_recovers_the_rotation(fram
     where the initial guess puts it in the lidar frame."""
     T_true = true_T_camera_lidar()
     T_init = perturb(T_true, 2.0, 0.0, seed=4)
-    cfg = CalibrationConfig(search_deg=3.0, search_m=0.0 if how == "box of 0 m" else 0.3, n_particles=60,
+    cfg = SolverConfig(search_deg=3.0, search_m=0.0 if how == "box of 0 m" else 0.3, n_particles=60,
                             repeats=2, translation="hold" if how == "hold" else "auto")
     result = calibrate([frame], T_init, cfg)
     assert result.translation_held and np.isnan(result.translation_std_m)
@@ -305,7 +305,7 @@ def test_translation_the_scene_does_not_fix_is_held_when_the_runs_disagree_on_it
     wall = far_wall_frame()
     T_true = true_T_camera_lidar()
     T_init = perturb(T_true, 1.0, 0.0, seed=2)
-    cfg = CalibrationConfig(search_deg=2.0, search_m=0.5, n_particles=60, repeats=2, confirm_repeats=0)
+    cfg = SolverConfig(search_deg=2.0, search_m=0.5, n_particles=60, repeats=2, confirm_repeats=0)
     free = calibrate([wall], T_init, dataclasses.replace(cfg, translation="estimate"))
     assert not free.translation_held
     assert free.verdict == "suspect" and "seeded runs" in free.verdict_reason
@@ -322,7 +322,7 @@ def test_translation_profile_names_the_components_a_far_scene_does_not_fix(frame
     (measured -0.13-0.00: each is a turn) but does fix the one along it (1.4-1.9)."""
     T_true = true_T_camera_lidar()
     T_init = perturb(T_true, 1.0, 0.05, seed=2)
-    cfg = CalibrationConfig(search_deg=2.0, search_m=0.3, n_particles=60, repeats=2, confirm_repeats=0,
+    cfg = SolverConfig(search_deg=2.0, search_m=0.3, n_particles=60, repeats=2, confirm_repeats=0,
                             translation="estimate", gradient_viewpoint="camera")  # lidar's: far z 0.87
     near = calibrate([frame], T_init, cfg)
     assert near.weak_translation_axes == [] and np.all(near.translation_profile > 1.5), near.translation_profile
@@ -342,7 +342,7 @@ def test_a_long_move_along_weak_axes_from_a_trusted_start_is_suspect() -> None:
     wall = far_wall_frame()
     T_true = true_T_camera_lidar()
     T_init = perturb(T_true, 1.0, 0.0, seed=2)
-    cfg = CalibrationConfig(search_deg=2.0, search_m=0.5, n_particles=60, repeats=1, translation="estimate",
+    cfg = SolverConfig(search_deg=2.0, search_m=0.5, n_particles=60, repeats=1, translation="estimate",
                             weak_move_max_m=0.02)
     strict = calibrate([wall], T_init, cfg)
     moved_m = translation_error_m(strict.T_camera_lidar, T_init)
@@ -362,7 +362,7 @@ def test_a_wide_box_never_holds_the_translation() -> None:
     translation, whatever the runs do."""
     wall = far_wall_frame()
     T_init = perturb(true_T_camera_lidar(), 1.0, 0.0, seed=2)
-    result = calibrate([wall], T_init, CalibrationConfig(search_deg=2.0, search_m=0.8, n_particles=40,
+    result = calibrate([wall], T_init, SolverConfig(search_deg=2.0, search_m=0.8, n_particles=40,
                                                          max_iterations=30, repeats=2, confirm_repeats=0))
     assert not result.translation_held and not np.isnan(result.translation_std_m)
 
@@ -372,7 +372,7 @@ def test_start_outside_the_search_box_is_suspect(frame: CalibrationFrame) -> Non
     where the swarm stops; that must not read as a confident recalibration."""
     T_true = true_T_camera_lidar()
     T_init = perturb(T_true, 5.0, 0.5, seed=3)
-    result = calibrate([frame], T_init, CalibrationConfig(search_deg=2.0, search_m=0.2, seed=1))
+    result = calibrate([frame], T_init, SolverConfig(search_deg=2.0, search_m=0.2, seed=1))
     assert rotation_error_deg(result.T_camera_lidar, T_true) > 2.0  # the truth is out of reach
     assert result.verdict == "suspect"
     assert "edge of the search box" in result.verdict_reason
@@ -383,11 +383,11 @@ def test_overlap_limit_is_reported_where_a_frame_projects_no_more_than_its_minim
     """At the initial guess a frame projects its own reference count: with the limit at 99 % of it the
     frame is on the limit (within 2 %), with the default (0.3 of it) it is not."""
     T_true = true_T_camera_lidar()
-    tight = CalibrationProblem([frame], T_true, CalibrationConfig(search_deg=2.0, search_m=0.2,
+    tight = CalibrationProblem([frame], T_true, SolverConfig(search_deg=2.0, search_m=0.2,
                                                                    min_overlap_fraction=0.99))
     limited = tight.overlap_limited(np.zeros(6), 0.02)
     assert len(limited) == 1 and limited[0].startswith("frame 1") and "limit" in limited[0]
-    loose = CalibrationProblem([frame], T_true, CalibrationConfig(search_deg=2.0, search_m=0.2))
+    loose = CalibrationProblem([frame], T_true, SolverConfig(search_deg=2.0, search_m=0.2))
     assert loose.overlap_limited(np.zeros(6), 0.02) == []
 
 
@@ -395,7 +395,7 @@ def test_image_without_structure_is_suspect(frame: CalibrationFrame) -> None:
     """Random image gradients: GOM stays near chance (0.5) and the optimum is flat."""
     rng = np.random.default_rng(0)
     noise = ImageGradients(rng.standard_normal((480, 640, 2)).astype(np.float32))
-    cfg = CalibrationConfig(search_deg=2.0, search_m=0.2, n_particles=40, max_iterations=30)
+    cfg = SolverConfig(search_deg=2.0, search_m=0.2, n_particles=40, max_iterations=30)
     result = calibrate([dataclasses.replace(frame, gradients=noise)], true_T_camera_lidar(), cfg)
     assert result.verdict == "suspect"
     assert abs(result.score - 0.5) < 0.1
@@ -404,7 +404,7 @@ def test_image_without_structure_is_suspect(frame: CalibrationFrame) -> None:
 def test_no_points_in_view_is_a_clear_error(frame: CalibrationFrame) -> None:
     T_away = from_xyz_rpy(0, 0, 0, 0, 180, 0) @ true_T_camera_lidar()  # camera looks backwards
     with pytest.raises(ProcessingError, match="lidar points"):
-        calibrate([frame], T_away, CalibrationConfig(search_deg=3.0, search_m=0.3, n_particles=20))
+        calibrate([frame], T_away, SolverConfig(search_deg=3.0, search_m=0.3, n_particles=20))
 
 
 def test_focal_length_is_co_estimated(frame: CalibrationFrame) -> None:
@@ -413,7 +413,7 @@ def test_focal_length_is_co_estimated(frame: CalibrationFrame) -> None:
     K = frame.camera.K.copy()
     K[0, 0] = K[1, 1] = 485.0
     wrong = CameraModel(frame.camera.width, frame.camera.height, K, frame.camera.D, "plumb_bob")
-    cfg = CalibrationConfig(search_deg=1.0, search_m=0.1, estimate_focal=True, focal_search=0.06,
+    cfg = SolverConfig(search_deg=1.0, search_m=0.1, estimate_focal=True, focal_search=0.06,
                             n_particles=80, seed=2, gradient_viewpoint="camera")  # lidar's sphere: 1.043
     result = calibrate([dataclasses.replace(frame, camera=wrong)], true_T_camera_lidar(), cfg)
     assert result.focal_scale == pytest.approx(500.0 / 485.0, abs=0.006)
@@ -447,7 +447,7 @@ def test_several_feature_channels_score_the_mean_of_their_channels(frame: Calibr
     rng_feature = compute_lidar_feature(np.asarray(frame.points_xyz), "range")
     both = replace(frame, feature=np.stack([np.asarray(frame.feature), rng_feature], axis=1))
     T_init = perturb(true_T_camera_lidar(), 2.0, 0.2, seed=4)
-    cfg = CalibrationConfig()
+    cfg = SolverConfig()
     x = np.random.default_rng(0).uniform(-2, 2, (16, 6)) * [1, 1, 1, 0.1, 0.1, 0.1]
     single = [CalibrationProblem([replace(frame, feature=f)], T_init, cfg).evaluate(x)
               for f in (frame.feature, rng_feature)]
@@ -465,8 +465,8 @@ def test_ring_smoothing_adds_a_term_smoothed_across_the_rings(frame: Calibration
 
     T_init = perturb(true_T_camera_lidar(), 2.0, 0.2, seed=4)
     x = np.random.default_rng(1).uniform(-2, 2, (16, 6)) * [1, 1, 1, 0.1, 0.1, 0.1]
-    auto = CalibrationProblem([frame], T_init, CalibrationConfig())
-    on = CalibrationProblem([frame], T_init, CalibrationConfig(ring_smoothing="on"))
+    auto = CalibrationProblem([frame], T_init, SolverConfig())
+    on = CalibrationProblem([frame], T_init, SolverConfig(ring_smoothing="on"))
     assert auto.ring_smoothing_px == [0.0] and len(auto.scorers[0]) == 1
     sigma = on.ring_smoothing_px[0]
     assert sigma == pytest.approx(np.radians(0.35) * 500 / 3, rel=0.05)
@@ -484,7 +484,7 @@ def test_a_lidar_with_sparse_rings_is_marked_so(frame: CalibrationFrame) -> None
     """The result carries the scan's ring spacing; above ``sparse_rings_above_deg`` (1 deg) the rig is marked
     ``sparse_rings`` (its translation is rough): 16 beams over 22 deg (1.47 deg) are, the fixture's 64
     (0.35 deg) are not, and neither verdict nor estimate depends on the mark."""
-    cheap = CalibrationConfig(search_deg=1.0, search_m=0.05, n_particles=16, max_iterations=4, repeats=1,
+    cheap = SolverConfig(search_deg=1.0, search_m=0.05, n_particles=16, max_iterations=4, repeats=1,
                               profile_translation_m=0.0)
     points, intensity = scan_lidar(make_scene(0), beams=16)
     sparse_frame = dataclasses.replace(frame, points_xyz=points, feature=compute_lidar_feature(points, "intensity",
@@ -502,7 +502,7 @@ def test_sparse_rings_slanted_across_the_image_are_suspect(frame: CalibrationFra
     have come out 0.2-1.7 deg off) and the ``auto`` neighbour rule ``angle`` (the lidar sphere's stretch
     assumes level rings). The same roll with 64 beams, or 16 beams level, gives neither (a sparse scan may still be
     ``suspect`` for its translation's sampling cell)."""
-    cheap = CalibrationConfig(search_deg=1.0, search_m=0.05, n_particles=16, max_iterations=4, repeats=1,
+    cheap = SolverConfig(search_deg=1.0, search_m=0.05, n_particles=16, max_iterations=4, repeats=1,
                               profile_translation_m=0.0)
 
     def scanned(beams: int, roll_deg: float) -> tuple[list[CalibrationFrame], NDArray[np.float64]]:
@@ -554,7 +554,7 @@ def test_rectified_stereo_image_calibrates_the_cameras_tf_frame() -> None:
     frame = synthetic_frame(0, camera=camera)
     T_true = true_T_camera_lidar()
     T_init = perturb(T_true, 1.0, 0.1, seed=5)
-    cfg = CalibrationConfig(search_deg=5.0, search_m=0.5, seed=0, repeats=2)
+    cfg = SolverConfig(search_deg=5.0, search_m=0.5, seed=0, repeats=2)
     result = calibrate([frame], T_init, cfg)
     assert rotation_error_deg(result.T_camera_lidar, T_true) < 0.4
     assert translation_error_m(result.T_camera_lidar, T_true) < 0.05
@@ -577,7 +577,7 @@ def test_frame_holds_nine_bytes_a_pixel_and_the_objective_shares_its_gradients()
     assert frame.intensity is not None
     held = frame.gradients.gxy.nbytes + frame.intensity.nbytes
     assert held == 9 * 1920 * 1200
-    problem = CalibrationProblem([frame], true_T_camera_lidar(), CalibrationConfig(ring_smoothing="off"))
+    problem = CalibrationProblem([frame], true_T_camera_lidar(), SolverConfig(ring_smoothing="off"))
     planes = [s.image.planes for s in problem.scorers[0] if isinstance(s, GomScorer)]
     assert planes and all(np.shares_memory(p, frame.gradients.gxy) for p in planes)
 
@@ -590,7 +590,7 @@ def test_search_reports_progress_with_an_eta_that_ends_with_the_search() -> None
     wall = far_wall_frame()
     T_init = perturb(true_T_camera_lidar(), 1.0, 0.0, seed=2)
     reports: list[SearchProgress] = []
-    cfg = CalibrationConfig(search_deg=2.0, search_m=0.0, n_particles=30, max_iterations=25, repeats=2,
+    cfg = SolverConfig(search_deg=2.0, search_m=0.0, n_particles=30, max_iterations=25, repeats=2,
                             confirm_repeats=0)
     calibrate([wall], T_init, cfg, reports.append)
     assert {r.run for r in reports} == {1, 2} and all(r.runs == 2 for r in reports)

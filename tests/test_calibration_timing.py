@@ -15,7 +15,7 @@ import pytest
 from numpy.typing import NDArray
 
 from fleetcal.pipeline.transforms import apply, rotation_error_deg, screw_apply, translation_error_m
-from fleetcal.stages.calibration import CalibrationConfig, CalibrationFrame, calibrate
+from fleetcal.stages.calibration import CalibrationFrame, SolverConfig, calibrate
 from fleetcal.stages.calibration.problem import CalibrationProblem
 from fleetcal.stages.calibration.timing import TimeShift, TimeShiftField
 from tests.test_calibration_synthetic import perturb, synthetic_frame, true_T_camera_lidar
@@ -51,7 +51,7 @@ def errors(T: NDArray[np.float64]) -> tuple[float, float]:
     return rotation_error_deg(T, true_T_camera_lidar()), translation_error_m(T, true_T_camera_lidar())
 
 
-CONFIG = CalibrationConfig(search_deg=2.0, search_m=0.4, repeats=1, n_particles=60, max_iterations=40,
+CONFIG = SolverConfig(search_deg=2.0, search_m=0.4, repeats=1, n_particles=60, max_iterations=40,
                            profile_translation_m=0.0)  # the weak-axis profile is not what these tests are about
 START = perturb(true_T_camera_lidar(), 1.0, 0.05, 3)
 

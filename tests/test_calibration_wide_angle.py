@@ -22,12 +22,12 @@ from fleetcal.pipeline.config import Config
 from fleetcal.pipeline.transforms import rotation_error_deg, translation_error_m
 from fleetcal.readers.frames import load_tf_tree
 from fleetcal.readers.open import open_log
-from fleetcal.stages.calibration import CalibrationConfig, calibrate
+from fleetcal.stages.calibration import SolverConfig, calibrate
 from fleetcal.workflows.calibrate import collect_frames, initial_guess
 from fleetcal.workflows.simulator.truth import load_truth, truth_path_for
 from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log
 
-CHEAP = CalibrationConfig(n_particles=60, max_iterations=40, repeats=1, confirm_repeats=0)
+CHEAP = SolverConfig(n_particles=60, max_iterations=40, repeats=1, confirm_repeats=0)
 
 
 @pytest.fixture(scope="module")

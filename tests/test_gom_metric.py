@@ -11,12 +11,12 @@ from fleetcal.pipeline.camera_model import CameraModel
 from fleetcal.pipeline.errors import ProcessingError
 from fleetcal.pipeline.transforms import apply, from_xyz_rpy
 from fleetcal.stages.calibration import (
-    CalibrationConfig,
     CalibrationProblem,
     GomScorer,
     GradientPlanes,
     LevinsonScorer,
     NmiScorer,
+    SolverConfig,
     calibrate_affine,
     compute_sphere_gradients,
     score_landscape,
@@ -264,7 +264,7 @@ def test_sphere_gradients_follow_image_axes() -> None:
 def test_gom_is_maximal_at_truth_on_synthetic_scene() -> None:
     frame = synthetic_frame(0, blur_sigma_px=2.0)
     T_true = true_T_camera_lidar()
-    problem = CalibrationProblem([frame], T_true, CalibrationConfig(search_deg=3.0, search_m=0.3))
+    problem = CalibrationProblem([frame], T_true, SolverConfig(search_deg=3.0, search_m=0.3))
     at_truth = problem.evaluate(np.zeros((1, 6)))[0]
     assert at_truth > 0.75
     rng = np.random.default_rng(7)

@@ -38,7 +38,7 @@ from fleetcal.pipeline.transforms import (
 from fleetcal.readers.base import LogReader
 from fleetcal.readers.frames import CameraInfoTracker, load_tf
 from fleetcal.stages.calibration.calibrator import CalibrationResult, ProgressCallback, SearchProgress, calibrate
-from fleetcal.stages.calibration.config import CalibrationConfig as SolverConfig
+from fleetcal.stages.calibration.config import SolverConfig
 from fleetcal.stages.calibration.frame import (
     CalibrationFrame,
     CameraFeatures,

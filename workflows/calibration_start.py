@@ -17,7 +17,7 @@ from fleetcal.pipeline.frames import CameraFrame
 from fleetcal.pipeline.progress import Progress
 from fleetcal.pipeline.transforms import exp_se3
 from fleetcal.readers.base import LogReader
-from fleetcal.stages.calibration.config import CalibrationConfig as SolverConfig
+from fleetcal.stages.calibration.config import SolverConfig
 from fleetcal.stages.calibration.frame import CalibrationFrame, equalised_grey
 from fleetcal.stages.calibration.hand_eye import CameraMotion, camera_motion, motion_rotation
 from fleetcal.stages.calibration.initialisation import InitialGuess, search_initial_guess

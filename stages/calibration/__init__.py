@@ -6,7 +6,7 @@ batches in numba, a particle swarm plus pattern-search polish, and ``calibrate``
 
 from fleetcal.stages.calibration.affine import AffineResult, calibrate_affine
 from fleetcal.stages.calibration.calibrator import CalibrationResult, calibrate
-from fleetcal.stages.calibration.config import CalibrationConfig
+from fleetcal.stages.calibration.config import SolverConfig
 from fleetcal.stages.calibration.frame import CalibrationFrame, compensate_ego_motion
 from fleetcal.stages.calibration.landscape import ScoreLandscape, score_landscape
 from fleetcal.stages.calibration.metrics import (
@@ -25,7 +25,6 @@ from fleetcal.stages.calibration.sphere_gradients import LidarGradients, compute
 __all__ = [
     "METRICS",
     "AffineResult",
-    "CalibrationConfig",
     "CalibrationFrame",
     "CalibrationProblem",
     "CalibrationResult",
@@ -36,6 +35,7 @@ __all__ = [
     "MetricBatch",
     "NmiScorer",
     "ScoreLandscape",
+    "SolverConfig",
     "SwarmResult",
     "calibrate",
     "calibrate_affine",

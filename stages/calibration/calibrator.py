@@ -14,12 +14,12 @@ swarm's optimum does not cure it (two rounds: 0.60 deg / 22 cm -> 0.22 / 10.5 ->
 25 -> 0.71 / 31 -> 0.67 / 31), nor does linearising at the truth itself (box 2 deg / 0.2 m:
 0.18 deg / 21 cm). Lidar gradients taken on the lidar's own sphere do not depend on the initial
 translation; with the least-squares fit and neighbours across rings all 10 seeds land within the
-bound; ``gradient_viewpoint='auto'`` takes them (see ``CalibrationConfig.gradient_viewpoint``). A
+bound; ``gradient_viewpoint='auto'`` takes them (see ``SolverConfig.gradient_viewpoint``). A
 coarse-to-fine schedule (whole box against image gradients blurred 4x, then a 2 deg / 0.2 m box
 re-linearised at its optimum) hurt every case measured (KITTI from tf 1.11 deg / 18 cm vs 0.14 / 8;
 simulated street 640x360 intensity 0.53 deg / 8.3 cm vs 0.25 / 1.0) and was removed. What wide boxes
 do get is a first swarm phase against blurred image gradients in the same box, with the same lidar
-gradients (``CalibrationConfig.explore``).
+gradients (``SolverConfig.explore``).
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 
 from fleetcal.pipeline.errors import ProcessingError
 from fleetcal.pipeline.transforms import rotation_error_deg, translation_error_m
-from fleetcal.stages.calibration.config import CalibrationConfig
+from fleetcal.stages.calibration.config import SolverConfig
 from fleetcal.stages.calibration.frame import CalibrationFrame, Mat4, fold_rectification
 from fleetcal.stages.calibration.observability import AXES, translation_profile, weak_axes
 from fleetcal.stages.calibration.problem import CalibrationProblem, embed, ring_slant_deg
@@ -70,8 +70,8 @@ class CalibrationResult:
         verdict: ``ok`` (initial guess confirmed), ``recalibrated`` or ``suspect`` (GOM below
             ``gom_suspect_below``, a flat optimum, an estimate at the edge of the search box or on a
             frame's overlap limit, no other seeded run agreeing with the returned one, or a held translation
-            whose rotation lies away from the unconfirmed 6-DoF best's, ``CalibrationConfig.translation``; or
-            a single run in a ``CalibrationConfig.wide_box``, which nothing confirms; or twice a per-axis standard
+            whose rotation lies away from the unconfirmed 6-DoF best's, ``SolverConfig.translation``; or
+            a single run in a ``SolverConfig.wide_box``, which nothing confirms; or twice a per-axis standard
             deviation, ``std_rotation_deg`` / ``std_translation_m``, beyond ``agree_rotation_deg`` /
             ``agree_translation_m``).
         verdict_reason: why ``suspect`` (empty otherwise).
@@ -84,22 +84,22 @@ class CalibrationResult:
         metric: metric name.
         gradient_viewpoint: viewpoint of the lidar gradients that was used (``auto`` resolved).
         ring_smoothing_px: largest across-ring smoothing of the image gradients over the frames, pixels
-            (0: none; see ``CalibrationConfig.ring_smoothing``).
+            (0: none; see ``SolverConfig.ring_smoothing``).
         translation_held: the translation was not estimated but kept at the initial guess's
-            (``CalibrationConfig.translation``); ``translation_std_m`` is then NaN.
+            (``SolverConfig.translation``); ``translation_std_m`` is then NaN.
         translation_profile: (3,) how well the objective fixes the translation along the (reference)
             camera's x, y, z against its rotation (``observability.translation_profile``: profile loss of a
-            ``CalibrationConfig.profile_translation_m`` move over the median loss of a ``profile_rotation_deg``
+            ``SolverConfig.profile_translation_m`` move over the median loss of a ``profile_rotation_deg``
             turn); NaN where not measured (held translation, profile off).
-        weak_translation_axes: the axes whose ratio is below ``CalibrationConfig.weak_translation_ratio``:
+        weak_translation_axes: the axes whose ratio is below ``SolverConfig.weak_translation_ratio``:
             the log fixes those components only roughly.
         ring_spacing_deg: median angle between the lidar's neighbouring rings over the frames, degrees
             (``sphere_gradients.ring_spacing_rad``; NaN where the scans do not tell).
-        sparse_rings: ``ring_spacing_deg`` above ``CalibrationConfig.sparse_rings_above_deg``: the translation
+        sparse_rings: ``ring_spacing_deg`` above ``SolverConfig.sparse_rings_above_deg``: the translation
             of such rigs is rough (biased by decimetres) even where the verdict is confident.
         ring_slant_deg: median over the frames of how far the lidar's rings cross the image slanted at the
             initial guess, degrees (``problem.ring_slant_deg``: 0 level, 90 upright; NaN where the rings circle
-            the image). Sparse rings slanted more than ``CalibrationConfig.slanted_rings_above_deg`` make the
+            the image). Sparse rings slanted more than ``SolverConfig.slanted_rings_above_deg`` make the
             verdict ``suspect``.
         std_rotation_deg, std_translation_m: (3,) standard deviations about / along the (reference) camera's
             x, y, z, degrees / metres (``uncertainty.axis_deviations``: seeded runs that score as well as the
@@ -107,7 +107,7 @@ class CalibrationResult:
             twice a deviation exceeds ``agree_rotation_deg`` / ``agree_translation_m``.
         alike_runs: other seeded runs that score as well as the best.
         time_offset_s, time_offset_std_s: the camera's clock minus the lidar's and its deviation, seconds
-            (``CalibrationConfig.estimate_time_offset``); NaN where not estimated; where the log's motion does
+            (``SolverConfig.estimate_time_offset``); NaN where not estimated; where the log's motion does
             not constrain it, NaN with an infinite deviation (unobservable). An offset's deviation times the
             rig's mean velocity is part of ``std_translation_m``.
         readout_s, readout_std_s: the rolling-shutter readout used (the frames' own, or estimated with
@@ -256,13 +256,13 @@ def agreeing_repeats(T_runs: list[Mat4], best: int, rotation_deg: float, transla
                and translation_error_m(T, T_runs[best]) <= translation_m)
 
 
-def _agreeing(runs: list[_Run], best: int, cfg: CalibrationConfig) -> int:
+def _agreeing(runs: list[_Run], best: int, cfg: SolverConfig) -> int:
     """Runs confirming ``runs[best]`` (``agreeing_repeats``)."""
     return agreeing_repeats([run.T_camera_lidar for run in runs], best, cfg.agree_rotation_deg,
                             cfg.agree_translation_m)
 
 
-def _seeded_runs(problem: CalibrationProblem, cfg: CalibrationConfig, hold_translation: bool,
+def _seeded_runs(problem: CalibrationProblem, cfg: SolverConfig, hold_translation: bool,
                  clock: _SearchClock) -> tuple[list[_Run], int]:
     """``repeats`` seeded runs and the index of the best, plus up to ``confirm_repeats`` more while no run
     confirms it (they only confirm: the best stays the best of the first ``repeats``)."""
@@ -275,15 +275,15 @@ def _seeded_runs(problem: CalibrationProblem, cfg: CalibrationConfig, hold_trans
 
 
 def resolve_auto_rules(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
-                      config: CalibrationConfig) -> CalibrationConfig:
+                      config: SolverConfig) -> SolverConfig:
     """``config`` with the data part of the ``auto`` rules applied (GOM only):
 
     - for a scan whose rings are so sparse that its points have fewer than 2 of their ``sphere_k`` nearest
       neighbours on other rings (``cross_ring_neighbours`` on the first frame's lidar sphere), where the box
-      alone would explore, exploration is left off (see ``CalibrationConfig.explore``);
+      alone would explore, exploration is left off (see ``SolverConfig.explore``);
     - for sparse rings slanted across the image (``slanted_sparse_rings``), ``neighbours_by`` is ``angle``:
       ``sampling`` stretches the sphere's polar angle, which assumes rings that run level across the image
-      (see ``CalibrationConfig.slanted_rings_above_deg``).
+      (see ``SolverConfig.slanted_rings_above_deg``).
     """
     if config.metric != "gom" or not frames:
         return config
@@ -300,7 +300,7 @@ def resolve_auto_rules(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4
 
 
 def _slanted_sparse_scans(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
-                          config: CalibrationConfig) -> bool:
+                          config: SolverConfig) -> bool:
     """``slanted_sparse_rings`` of the frames' medians at the initial guess (the ring spacing, a k-d tree
     probe per frame, is measured only where the rings are slanted)."""
     T0 = np.asarray(T_camera_lidar_init, dtype=np.float64)
@@ -312,14 +312,14 @@ def _slanted_sparse_scans(frames: list[CalibrationFrame], T_camera_lidar_init: M
                                 slant_deg, config)
 
 
-def slanted_sparse_rings(ring_deg: float, slant_deg: float, config: CalibrationConfig) -> bool:
+def slanted_sparse_rings(ring_deg: float, slant_deg: float, config: SolverConfig) -> bool:
     """Rings further apart than ``sparse_rings_above_deg`` that cross the image slanted more than
     ``slanted_rings_above_deg`` (False where either is NaN)."""
     return bool(ring_deg > config.sparse_rings_above_deg and slant_deg > config.slanted_rings_above_deg)
 
 
 def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
-              config: CalibrationConfig | None = None, progress: ProgressCallback | None = None) -> CalibrationResult:
+              config: SolverConfig | None = None, progress: ProgressCallback | None = None) -> CalibrationResult:
     """Estimate ``T_camera_lidar`` from paired frames, starting at ``T_camera_lidar_init``: ``repeats``
     seeded swarm + polish runs over one objective; the best-scoring run is returned and the spread of
     the runs is the uncertainty. ``progress`` is called after every swarm iteration (``SearchProgress``).
@@ -328,7 +328,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         ProcessingError: no frames, or the camera sees (almost) no lidar points anywhere in the box.
         ConfigError: invalid settings.
     """
-    config = config or CalibrationConfig()
+    config = config or SolverConfig()
     cfg = resolve_auto_rules(frames, T_camera_lidar_init, config)
     auto_angle = config.neighbours_by == "auto" and cfg.neighbours_by == "angle"
     problem = CalibrationProblem(frames, T_camera_lidar_init, cfg)
@@ -456,7 +456,7 @@ def _time_field(problem: CalibrationProblem) -> TimeShiftField | None:
 
 
 def _estimate_timing(problem: CalibrationProblem, field: TimeShiftField | None, x: NDArray[np.float64], hold: bool,
-                     cfg: CalibrationConfig) -> TimingEstimate | None:
+                     cfg: SolverConfig) -> TimingEstimate | None:
     """The clock offset and readout found at the estimate x (D,) and the extrinsic refined under them; None
     where neither is asked for or no frame moves (nothing to find them from)."""
     if field is None or not (cfg.estimate_time_offset or cfg.estimate_readout):
@@ -473,7 +473,7 @@ def _estimate_timing(problem: CalibrationProblem, field: TimeShiftField | None, 
                            refine)
 
 
-def _timing_floor(field: TimeShiftField | None, timing: TimingEstimate | None, cfg: CalibrationConfig,
+def _timing_floor(field: TimeShiftField | None, timing: TimingEstimate | None, cfg: SolverConfig,
                   T_best: Mat4) -> NDArray[np.float64]:
     """(6,) extrinsic deviations left by an estimated clock offset's own (``timing.extrinsic_deviation``);
     zeros where the offset was not estimated."""
@@ -484,7 +484,7 @@ def _timing_floor(field: TimeShiftField | None, timing: TimingEstimate | None, c
 
 
 def _timing_fields(problem: CalibrationProblem, timing: TimingEstimate | None,
-                   cfg: CalibrationConfig) -> dict[str, float]:
+                   cfg: SolverConfig) -> dict[str, float]:
     """``CalibrationResult``'s time fields (see there): NaN with an infinite deviation where a time asked for
     could not be found (no motion, or a profile that does not tell)."""
     out = {"readout_s": float(np.mean([f.readout_s for f in problem.frames]))}
@@ -500,7 +500,7 @@ def _timing_fields(problem: CalibrationProblem, timing: TimingEstimate | None,
 
 
 def _uncertain_axes(std_rotation_deg: NDArray[np.float64], std_translation_m: NDArray[np.float64],
-                    cfg: CalibrationConfig) -> list[str]:
+                    cfg: SolverConfig) -> list[str]:
     """The camera axes whose two standard deviations exceed ``agree_rotation_deg`` / ``agree_translation_m``
     (the distance within which two estimates are the same answer), each as ``"rz 0.62 deg"``."""
     out = [f"r{a} {2 * v:.2f} deg" for a, v in zip(AXES, std_rotation_deg, strict=True)

@@ -1,4 +1,4 @@
-"""Settings of a lidar-camera calibration (``CalibrationConfig``), with the evidence behind each default."""
+"""Settings of a lidar-camera calibration (``SolverConfig``), with the evidence behind each default."""
 
 from __future__ import annotations
 
@@ -9,8 +9,9 @@ from fleetcal.stages.calibration.metrics import METRICS
 
 
 @dataclass
-class CalibrationConfig:
-    """Settings of ``calibrate``.
+class SolverConfig:
+    """Settings of the solver ``calibrate`` (the user's settings, ``pipeline.config.CalibrationConfig``, map
+    onto these in ``workflows.calibrate.solver_config``).
 
     The evidence given for each default was measured when it was chosen; unless it names the viewpoint,
     evidence from a box of 5 deg / 0.5 m or less was measured on the paper's camera sphere

@@ -35,7 +35,7 @@ from scipy.spatial.transform import Rotation
 from fleetcal.pipeline.camera_model import CameraModel
 from fleetcal.pipeline.errors import ProcessingError
 from fleetcal.pipeline.transforms import apply, rotation_error_deg
-from fleetcal.stages.calibration.config import CalibrationConfig
+from fleetcal.stages.calibration.config import SolverConfig
 from fleetcal.stages.calibration.frame import CalibrationFrame, Mat4, fold_rectification
 from fleetcal.stages.calibration.hand_eye import HandEyeRotation, rotations_about
 from fleetcal.stages.calibration.metrics import GomScorer, GradientPlanes
@@ -228,7 +228,7 @@ def _poses(R: NDArray[np.float64], translation_m: NDArray[np.float64]) -> NDArra
 
 
 def _grid_scores(preps: list[_FramePrep], bases: NDArray[np.float64], turns: NDArray[np.float64],
-                 translation_m: NDArray[np.float64], reach_deg: float, config: CalibrationConfig,
+                 translation_m: NDArray[np.float64], reach_deg: float, config: SolverConfig,
                  progress: Callable[[float], None] | None = None) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Rotations (B * M, 3, 3) ``turns @ base`` for every base rotation and their coarse scores; ``progress``
     is told the fraction of bases done."""
@@ -271,7 +271,7 @@ class _Polished:
 
 
 def _polish(preps: list[_FramePrep], R_start: NDArray[np.float64], translation_m: NDArray[np.float64],
-            step_deg: float, config: CalibrationConfig) -> _Polished:
+            step_deg: float, config: SolverConfig) -> _Polished:
     """Compass search from ``R_start`` (gradients seen from there) of the rotation, with the translation free
     within the calibration's box (``config.search_m``) so that the rotation does not turn to make up for a
     near scene's parallax; the rotation is kept, at ``translation_m``, with its band scores."""
@@ -302,7 +302,7 @@ def _band_scores(scorers: Sequence[GomScorer | None], preps: Sequence[_FramePrep
     return np.asarray(out)
 
 
-def search_initial_guess(frames: list[CalibrationFrame], config: CalibrationConfig,
+def search_initial_guess(frames: list[CalibrationFrame], config: SolverConfig,
                          motion: HandEyeRotation | None = None,
                          translation_m: NDArray[np.floating] | None = None,
                          progress: Callable[[float], None] | None = None) -> InitialGuess:

@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from fleetcal.pipeline.camera_model import CameraModel
 from fleetcal.pipeline.errors import ProcessingError
 from fleetcal.pipeline.transforms import apply
-from fleetcal.stages.calibration.config import CalibrationConfig
+from fleetcal.stages.calibration.config import SolverConfig
 from fleetcal.stages.calibration.frame import (
     CalibrationFrame,
     Mat4,
@@ -133,7 +133,7 @@ class CalibrationProblem:
     """Prepared frames and the batched objective ``evaluate(x (P, D)) -> (P,)`` of a calibration."""
 
     def __init__(self, frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
-                 config: CalibrationConfig) -> None:
+                 config: SolverConfig) -> None:
         config.validate()
         if not frames:
             raise ProcessingError("no paired lidar/camera frames to calibrate from")
@@ -181,7 +181,7 @@ class CalibrationProblem:
 
     def _ring_smoothing(self, f: CalibrationFrame, T_cam_lidar: Mat4, ring: float) -> tuple[
             float, NDArray[np.float64]]:
-        """Across-ring smoothing of a frame's image gradients (``CalibrationConfig.ring_smoothing``) for rings
+        """Across-ring smoothing of a frame's image gradients (``SolverConfig.ring_smoothing``) for rings
         ``ring`` radians apart: its Gaussian sigma in pixels (0: none) and the image direction (2,) across the
         lidar's rings (its z axis seen by the camera near the principal point)."""
         cfg = self.config
