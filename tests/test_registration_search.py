@@ -18,7 +18,7 @@ from fleetcal.stages.registration.gicp_kernels import (
     match_linearize_kernel,
 )
 from fleetcal.stages.registration.kdtree import KdTree
-from fleetcal.stages.registration.kdtree_kernels import MAX_DEPTH, nearest_two, scratch
+from fleetcal.stages.registration.kdtree_kernels import MAX_DEPTH, nearest_two
 from fleetcal.stages.registration.pointset import merge_pointsets, transformed_pointset
 from fleetcal.stages.registration.voxel import VoxelSums
 from fleetcal.stages.registration.voxel_kernels import group_kernel
@@ -31,8 +31,7 @@ def brute_d2(queries: NDArray[np.float64], points: NDArray[np.float64]) -> NDArr
 
 
 def clouds() -> list[NDArray[np.float64]]:
-    """Random, clustered, planar, gridded (many ties), duplicated (also in leaves of more than
-    ``LEAF_BLOCK`` points) and one-point clouds, 3-D and 5-D."""
+    """Random, clustered, planar, gridded (many ties), duplicated and one-point clouds, 3-D and 5-D."""
     rng = np.random.default_rng(40)
     grid = np.stack(np.meshgrid(*[np.arange(8.0)] * 3, indexing="ij"), -1).reshape(-1, 3) * 0.25
     plane = np.column_stack([rng.uniform(-5, 5, (700, 2)), np.zeros(700)])
@@ -42,7 +41,6 @@ def clouds() -> list[NDArray[np.float64]]:
         plane,
         grid,
         np.repeat(rng.normal(0, 1, (40, 3)), 7, axis=0),
-        np.repeat(rng.normal(0, 1, (3, 3)), 50, axis=0),  # leaves of more points than LEAF_BLOCK
         rng.normal(0, 1, (1, 3)),
         rng.normal(0, 2, (600, 5)),
     ]
@@ -139,7 +137,7 @@ def test_nearest_two_from_any_start_matches_brute_force() -> None:
         tree = KdTree(points, 4)
         tree_points, _, leaf_of, info, split, cell = tree.arrays
         dims = points.shape[1]
-        stacks = scratch(dims)
+        stacks = (np.empty(MAX_DEPTH, np.int64), np.empty(MAX_DEPTH), np.empty((MAX_DEPTH, dims)), np.empty(dims))
         for _ in range(100):
             query = tree_points[rng.integers(tree.n)] + rng.normal(0, 0.4, dims)
             d2 = np.sort(brute_d2(query[None], tree_points)[0])
@@ -149,7 +147,7 @@ def test_nearest_two_from_any_start_matches_brute_force() -> None:
                 if candidate < 0 or candidate == other:
                     candidate, other = -1, -1
                 best, best_d2, runner_up, second_d2 = nearest_two(
-                    tree_points, leaf_of, info, split, cell, query, max_d2, candidate, other, *stacks, dims
+                    tree_points, leaf_of, info, split, cell, query, max_d2, candidate, other, *stacks
                 )
                 want1 = d2[0] if d2[0] < max_d2 else max_d2
                 want2 = d2[1] if d2[1] < max_d2 else max_d2

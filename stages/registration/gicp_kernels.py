@@ -12,7 +12,7 @@ import numpy as np
 from numba import njit
 
 from fleetcal.pipeline.numba_flags import NJIT_FLAGS
-from fleetcal.stages.registration.kdtree_kernels import nearest_one, nearest_two, scratch
+from fleetcal.stages.registration.kdtree_kernels import MAX_DEPTH, nearest_one, nearest_two
 
 FAR_MOVE_FRACTION = 0.1
 """A query that moved farther than this fraction of the maximum correspondence distance since its last
@@ -246,96 +246,6 @@ def linearize_kernel(
     return _sum_parts(H_parts, g_parts, cost_parts, used_parts)
 
 
-@njit(inline="always", **NJIT_FLAGS)
-def _match_linearize(
-    tree_points: np.ndarray,
-    order: np.ndarray,
-    leaf_of: np.ndarray,
-    node_info: np.ndarray,
-    node_split: np.ndarray,
-    node_cell: np.ndarray,
-    src_points: np.ndarray,
-    src_features: np.ndarray,
-    src_cov: np.ndarray,
-    tgt_points: np.ndarray,
-    tgt_cov: np.ndarray,
-    T: np.ndarray,
-    max_d2: float,
-    robust_kind: int,
-    robust_scale: float,
-    n_chunks: int,
-    searched_at: np.ndarray,
-    nearest: np.ndarray,
-    second: np.ndarray,
-    second_dist: np.ndarray,
-    correspondences: np.ndarray,
-    dims: int,
-) -> tuple[np.ndarray, np.ndarray, float, int]:
-    """``match_linearize_kernel`` over a D = ``dims`` tree."""
-    n = src_points.shape[0]
-    n_features = dims - 3
-    H_parts = np.zeros((n_chunks, 6, 6))
-    g_parts = np.zeros((n_chunks, 6))
-    cost_parts = np.zeros(n_chunks)
-    used_parts = np.zeros(n_chunks, dtype=np.int64)
-    chunk = (n + n_chunks - 1) // n_chunks
-    stack_node, stack_d2, stack_off, offsets, dist = scratch(dims)
-    query = np.empty(dims)
-    far_move2 = FAR_MOVE_FRACTION**2 * max_d2
-    for c in range(n_chunks):
-        Hc = H_parts[c]
-        gc = g_parts[c]
-        for i in range(c * chunk, min(n, (c + 1) * chunk)):
-            a = src_points[i]
-            for r in range(3):
-                query[r] = T[r, 0] * a[0] + T[r, 1] * a[1] + T[r, 2] * a[2] + T[r, 3]
-            for e in range(n_features):
-                query[3 + e] = src_features[i, e]
-            pos = nearest[i]
-            kept = False
-            moved2 = 0.0
-            if pos >= 0:
-                for r in range(3):
-                    step = query[r] - searched_at[i, r]
-                    moved2 += step * step
-            if second_dist[i] > 0.0:
-                d2 = 0.0
-                for e in range(dims):
-                    diff = tree_points[pos, e] - query[e]
-                    d2 += diff * diff
-                kept = np.sqrt(d2) + np.sqrt(moved2) < second_dist[i]
-                if kept and not d2 < max_d2:
-                    pos = -1
-            if kept:
-                pass
-            elif moved2 > far_move2:  # still moving fast: the nearest only, from the last one
-                pos, d2 = nearest_one(tree_points, leaf_of, node_info, node_split, node_cell, query, max_d2,
-                                      nearest[i], stack_node, stack_d2, stack_off, offsets, dist, dims)  # fmt: skip
-                nearest[i] = pos
-                second_dist[i] = -1.0
-                for e in range(dims):
-                    searched_at[i, e] = query[e]
-            else:
-                pos, d2, runner_up, second_d2 = nearest_two(tree_points, leaf_of, node_info, node_split, node_cell,
-                                                            query, max_d2, nearest[i], second[i], stack_node, stack_d2,
-                                                            stack_off, offsets, dist, dims)  # fmt: skip
-                nearest[i] = pos
-                second[i] = runner_up
-                second_dist[i] = np.sqrt(second_d2) if pos >= 0 else -1.0
-                for e in range(dims):
-                    searched_at[i, e] = query[e]
-            if pos < 0:
-                correspondences[i] = -1
-                continue
-            j = order[pos]
-            correspondences[i] = j
-            rho = _accumulate(a, src_cov[i], tgt_points[j], tgt_cov[j], T, robust_kind, robust_scale, Hc, gc)
-            if rho >= 0.0:
-                cost_parts[c] += rho
-                used_parts[c] += 1
-    return _sum_parts(H_parts, g_parts, cost_parts, used_parts)
-
-
 @njit(**NJIT_FLAGS)
 def match_linearize_kernel(
     tree_points: np.ndarray,
@@ -383,25 +293,70 @@ def match_linearize_kernel(
 
     Returns:
         (H, g, cost, number of correspondences used), as ``linearize_kernel``.
-
-    GICP's 3-D trees and MC-GICP's 4-D ones (one descriptor) run copies of the search compiled for that
-    many coordinates.
     """
+    n = src_points.shape[0]
     dims = tree_points.shape[1]
-    if dims == 3:
-        return _match_linearize(
-            tree_points, order, leaf_of, node_info, node_split, node_cell, src_points, src_features, src_cov,
-            tgt_points, tgt_cov, T, max_d2, robust_kind, robust_scale, n_chunks, searched_at, nearest, second,
-            second_dist, correspondences, 3,
-        )  # fmt: skip
-    if dims == 4:
-        return _match_linearize(
-            tree_points, order, leaf_of, node_info, node_split, node_cell, src_points, src_features, src_cov,
-            tgt_points, tgt_cov, T, max_d2, robust_kind, robust_scale, n_chunks, searched_at, nearest, second,
-            second_dist, correspondences, 4,
-        )  # fmt: skip
-    return _match_linearize(
-        tree_points, order, leaf_of, node_info, node_split, node_cell, src_points, src_features, src_cov,
-        tgt_points, tgt_cov, T, max_d2, robust_kind, robust_scale, n_chunks, searched_at, nearest, second,
-        second_dist, correspondences, dims,
-    )  # fmt: skip
+    n_features = dims - 3
+    H_parts = np.zeros((n_chunks, 6, 6))
+    g_parts = np.zeros((n_chunks, 6))
+    cost_parts = np.zeros(n_chunks)
+    used_parts = np.zeros(n_chunks, dtype=np.int64)
+    chunk = (n + n_chunks - 1) // n_chunks
+    stack_node = np.empty(MAX_DEPTH, dtype=np.int64)
+    stack_d2 = np.empty(MAX_DEPTH)
+    stack_off = np.empty((MAX_DEPTH, dims))
+    offsets = np.empty(dims)
+    query = np.empty(dims)
+    far_move2 = FAR_MOVE_FRACTION**2 * max_d2
+    for c in range(n_chunks):
+        Hc = H_parts[c]
+        gc = g_parts[c]
+        for i in range(c * chunk, min(n, (c + 1) * chunk)):
+            a = src_points[i]
+            for r in range(3):
+                query[r] = T[r, 0] * a[0] + T[r, 1] * a[1] + T[r, 2] * a[2] + T[r, 3]
+            for e in range(n_features):
+                query[3 + e] = src_features[i, e]
+            pos = nearest[i]
+            kept = False
+            moved2 = 0.0
+            if pos >= 0:
+                for r in range(3):
+                    step = query[r] - searched_at[i, r]
+                    moved2 += step * step
+            if second_dist[i] > 0.0:
+                d2 = 0.0
+                for e in range(dims):
+                    diff = tree_points[pos, e] - query[e]
+                    d2 += diff * diff
+                kept = np.sqrt(d2) + np.sqrt(moved2) < second_dist[i]
+                if kept and not d2 < max_d2:
+                    pos = -1
+            if kept:
+                pass
+            elif moved2 > far_move2:  # still moving fast: the nearest only, from the last one
+                pos, d2 = nearest_one(tree_points, leaf_of, node_info, node_split, node_cell, query, max_d2,
+                                      nearest[i], stack_node, stack_d2, stack_off, offsets)  # fmt: skip
+                nearest[i] = pos
+                second_dist[i] = -1.0
+                for e in range(dims):
+                    searched_at[i, e] = query[e]
+            else:
+                pos, d2, runner_up, second_d2 = nearest_two(tree_points, leaf_of, node_info, node_split, node_cell,
+                                                            query, max_d2, nearest[i], second[i], stack_node, stack_d2,
+                                                            stack_off, offsets)  # fmt: skip
+                nearest[i] = pos
+                second[i] = runner_up
+                second_dist[i] = np.sqrt(second_d2) if pos >= 0 else -1.0
+                for e in range(dims):
+                    searched_at[i, e] = query[e]
+            if pos < 0:
+                correspondences[i] = -1
+                continue
+            j = order[pos]
+            correspondences[i] = j
+            rho = _accumulate(a, src_cov[i], tgt_points[j], tgt_cov[j], T, robust_kind, robust_scale, Hc, gc)
+            if rho >= 0.0:
+                cost_parts[c] += rho
+                used_parts[c] += 1
+    return _sum_parts(H_parts, g_parts, cost_parts, used_parts)

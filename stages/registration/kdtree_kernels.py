@@ -30,9 +30,6 @@ from fleetcal.pipeline.numba_flags import NJIT_FLAGS
 
 MAX_DEPTH = 128
 """Search stack entries; the build stops splitting at this depth."""
-LEAF_BLOCK = 32
-"""A leaf's points are compared with a query this many at a time: their squared distances are computed
-first into a scratch buffer (a loop without branches), then compared with the best so far."""
 
 
 @njit(**NJIT_FLAGS)
@@ -196,19 +193,6 @@ def _heap_add(knn_d2: np.ndarray, knn_pos: np.ndarray, count: int, d2: float, po
 
 
 @njit(inline="always", **NJIT_FLAGS)
-def _block_d2(tree_points: np.ndarray, lo: int, hi: int, query: np.ndarray, dist: np.ndarray, dims: int) -> None:
-    """Squared distances from ``query`` (D,) to the tree points at positions ``lo:hi`` (at most
-    ``LEAF_BLOCK``) into ``dist[: hi - lo]``: a loop without branches, apart from the comparisons
-    that use them."""
-    for i in range(lo, hi):
-        d2 = 0.0
-        for c in range(dims):
-            e = tree_points[i, c] - query[c]
-            d2 += e * e
-        dist[i - lo] = d2
-
-
-@njit(inline="always", **NJIT_FLAGS)
 def _search(
     tree_points: np.ndarray,
     node_info: np.ndarray,
@@ -221,17 +205,15 @@ def _search(
     stack_d2: np.ndarray,
     stack_off: np.ndarray,
     offsets: np.ndarray,
-    dist: np.ndarray,
-    dims: int,
 ) -> None:
     """The k = len(knn_pos) tree positions nearest ``query`` (D,) into ``knn_pos`` and their squared
     distances into ``knn_d2``, as a max-heap (the farthest first, the rest in no particular order).
 
     Only points strictly closer than ``bound_d2`` are taken (inf: no bound); at least k must be.
-    ``stack_node`` (MAX_DEPTH,), ``stack_d2`` (MAX_DEPTH,), ``stack_off`` (MAX_DEPTH, D), ``offsets``
-    (D,) and ``dist`` (LEAF_BLOCK,) are scratch space (``scratch``); ``dims`` = D (a constant where the
-    caller passes one: the loops over coordinates are then unrolled).
+    ``stack_node`` (MAX_DEPTH,), ``stack_d2`` (MAX_DEPTH,), ``stack_off`` (MAX_DEPTH, D) and ``offsets``
+    (D,) are scratch space.
     """
+    dims = tree_points.shape[1]
     k = knn_pos.shape[0]
     count = 0
     limit = bound_d2
@@ -257,15 +239,15 @@ def _search(
                 stack_off[top, dim] = diff
                 top += 1
             node = near
-        for lo in range(node_info[node, 2], node_info[node, 3], LEAF_BLOCK):
-            hi = min(lo + LEAF_BLOCK, node_info[node, 3])
-            _block_d2(tree_points, lo, hi, query, dist, dims)
-            for i in range(lo, hi):
-                d2 = dist[i - lo]
-                if d2 < limit:
-                    count = _heap_add(knn_d2, knn_pos, count, d2, i)
-                    if count == k:
-                        limit = knn_d2[0]
+        for i in range(node_info[node, 2], node_info[node, 3]):
+            d2 = 0.0
+            for c in range(dims):
+                e = tree_points[i, c] - query[c]
+                d2 += e * e
+            if d2 < limit:
+                count = _heap_add(knn_d2, knn_pos, count, d2, i)
+                if count == k:
+                    limit = knn_d2[0]
         found = False
         while top > 0:
             top -= 1
@@ -308,13 +290,12 @@ def _search_one(
     stack_d2: np.ndarray,
     stack_off: np.ndarray,
     offsets: np.ndarray,
-    dist: np.ndarray,
-    dims: int,
 ) -> tuple[int, float]:
     """``_search`` for k = 1 on scalars, in the subtree of ``node``: (tree position, squared distance)
     of the point nearest ``query`` strictly closer than ``best_d2``, or (``best``, ``best_d2``) when
     none is. ``offsets`` (D,) come in holding the query's offset from the node's cell per coordinate
     and ``cell_d2`` their sum of squares (zeros at the root)."""
+    dims = tree_points.shape[1]
     top = 0
     while True:
         while node_info[node, 0] >= 0:
@@ -333,13 +314,14 @@ def _search_one(
                 stack_off[top, dim] = diff
                 top += 1
             node = near
-        for lo in range(node_info[node, 2], node_info[node, 3], LEAF_BLOCK):
-            hi = min(lo + LEAF_BLOCK, node_info[node, 3])
-            _block_d2(tree_points, lo, hi, query, dist, dims)
-            for i in range(lo, hi):
-                if dist[i - lo] < best_d2:
-                    best_d2 = dist[i - lo]
-                    best = i
+        for i in range(node_info[node, 2], node_info[node, 3]):
+            d2 = 0.0
+            for c in range(dims):
+                e = tree_points[i, c] - query[c]
+                d2 += e * e
+            if d2 < best_d2:
+                best_d2 = d2
+                best = i
         found = False
         while top > 0:
             top -= 1
@@ -368,30 +350,32 @@ def nearest_one(
     stack_d2: np.ndarray,
     stack_off: np.ndarray,
     offsets: np.ndarray,
-    dist: np.ndarray,
-    dims: int,
 ) -> tuple[int, float]:
     """(tree position, squared distance) of the point nearest ``query`` (D,) closer than sqrt(max_d2);
     (-1, max_d2) when none is.
 
     ``candidate`` (a tree position, -1 for none): the search starts from its leaf and climbs (module
-    docstring); without one it descends from the root. Scratch arrays and ``dims`` as ``_search``.
+    docstring); without one it descends from the root.
+    ``stack_node`` (MAX_DEPTH,), ``stack_d2`` (MAX_DEPTH,), ``stack_off`` (MAX_DEPTH, D) and ``offsets``
+    (D,) are scratch space.
     """
+    dims = tree_points.shape[1]
     if candidate < 0:
         for c in range(dims):
             offsets[c] = 0.0
         return _search_one(tree_points, node_info, node_split, query, 0, 0.0, -1, max_d2, stack_node, stack_d2,
-                           stack_off, offsets, dist, dims)  # fmt: skip
+                           stack_off, offsets)  # fmt: skip
     best = -1
     best_d2 = max_d2
     node = leaf_of[candidate]
-    for lo in range(node_info[node, 2], node_info[node, 3], LEAF_BLOCK):
-        hi = min(lo + LEAF_BLOCK, node_info[node, 3])
-        _block_d2(tree_points, lo, hi, query, dist, dims)
-        for i in range(lo, hi):
-            if dist[i - lo] < best_d2:
-                best_d2 = dist[i - lo]
-                best = i
+    for i in range(node_info[node, 2], node_info[node, 3]):
+        d2 = 0.0
+        for c in range(dims):
+            e = tree_points[i, c] - query[c]
+            d2 += e * e
+        if d2 < best_d2:
+            best_d2 = d2
+            best = i
     while True:
         inside = True
         for c in range(dims):
@@ -412,7 +396,7 @@ def nearest_one(
             cell_d2 += off * off
         if cell_d2 < best_d2:
             best, best_d2 = _search_one(tree_points, node_info, node_split, query, sibling, cell_d2, best, best_d2,
-                                        stack_node, stack_d2, stack_off, offsets, dist, dims)  # fmt: skip
+                                        stack_node, stack_d2, stack_off, offsets)  # fmt: skip
         node = parent
 
 
@@ -434,14 +418,13 @@ def _search_two(
     stack_d2: np.ndarray,
     stack_off: np.ndarray,
     offsets: np.ndarray,
-    dist: np.ndarray,
-    dims: int,
 ) -> tuple[int, float, int, float]:
     """The nearest and second nearest point to ``query`` in the subtree of ``node``, given the best two
     found so far: (tree position of the nearest, its squared distance, the second's position and
     squared distance).
     Points at positions ``skip1`` and ``skip2`` (already counted) are passed over. ``offsets`` and
     ``cell_d2`` as ``_search_one``."""
+    dims = tree_points.shape[1]
     top = 0
     while True:
         while node_info[node, 0] >= 0:
@@ -460,17 +443,17 @@ def _search_two(
                 stack_off[top, dim] = diff
                 top += 1
             node = near
-        for lo in range(node_info[node, 2], node_info[node, 3], LEAF_BLOCK):
-            hi = min(lo + LEAF_BLOCK, node_info[node, 3])
-            _block_d2(tree_points, lo, hi, query, dist, dims)
-            for i in range(lo, hi):
-                d2 = dist[i - lo]
-                if d2 < second_d2 and i != skip1 and i != skip2:
-                    if d2 < best_d2:
-                        runner_up, second_d2 = best, best_d2
-                        best, best_d2 = i, d2
-                    else:
-                        runner_up, second_d2 = i, d2
+        for i in range(node_info[node, 2], node_info[node, 3]):
+            d2 = 0.0
+            for c in range(dims):
+                e = tree_points[i, c] - query[c]
+                d2 += e * e
+            if d2 < second_d2 and i != skip1 and i != skip2:
+                if d2 < best_d2:
+                    runner_up, second_d2 = best, best_d2
+                    best, best_d2 = i, d2
+                else:
+                    runner_up, second_d2 = i, d2
         found = False
         while top > 0:
             top -= 1
@@ -500,8 +483,6 @@ def nearest_two(
     stack_d2: np.ndarray,
     stack_off: np.ndarray,
     offsets: np.ndarray,
-    dist: np.ndarray,
-    dims: int,
 ) -> tuple[int, float, int, float]:
     """(tree position of the point nearest ``query`` (D,), its squared distance, the second nearest's
     position and squared distance), counting only points closer than sqrt(max_d2): -1 and max_d2 for a
@@ -510,13 +491,14 @@ def nearest_two(
     With known points near the query (``candidate``, ``other``: tree positions, e.g. the last search's
     two nearest; -1 for none) the search starts at the candidate's leaf and climbs while the ball
     through the second nearest found is not inside the current cell (module docstring); without, it
-    descends from the root. Scratch arrays and ``dims`` as ``_search``.
+    descends from the root. Scratch arrays as ``_search``.
     """
+    dims = tree_points.shape[1]
     for c in range(dims):
         offsets[c] = 0.0
     if candidate < 0:
         return _search_two(tree_points, node_info, node_split, query, 0, 0.0, -1, max_d2, -1, max_d2, -1, -1,
-                           stack_node, stack_d2, stack_off, offsets, dist, dims)  # fmt: skip
+                           stack_node, stack_d2, stack_off, offsets)  # fmt: skip
     best, best_d2, runner_up, second_d2 = -1, max_d2, -1, max_d2
     for pos in (candidate, other):
         if pos < 0:
@@ -532,17 +514,17 @@ def nearest_two(
             else:
                 runner_up, second_d2 = pos, d2
     node = leaf_of[candidate]
-    for lo in range(node_info[node, 2], node_info[node, 3], LEAF_BLOCK):
-        hi = min(lo + LEAF_BLOCK, node_info[node, 3])
-        _block_d2(tree_points, lo, hi, query, dist, dims)
-        for i in range(lo, hi):
-            d2 = dist[i - lo]
-            if d2 < second_d2 and i != candidate and i != other:
-                if d2 < best_d2:
-                    runner_up, second_d2 = best, best_d2
-                    best, best_d2 = i, d2
-                else:
-                    runner_up, second_d2 = i, d2
+    for i in range(node_info[node, 2], node_info[node, 3]):
+        d2 = 0.0
+        for c in range(dims):
+            e = tree_points[i, c] - query[c]
+            d2 += e * e
+        if d2 < second_d2 and i != candidate and i != other:
+            if d2 < best_d2:
+                runner_up, second_d2 = best, best_d2
+                best, best_d2 = i, d2
+            else:
+                runner_up, second_d2 = i, d2
     while True:
         inside = True
         for c in range(dims):
@@ -564,17 +546,9 @@ def nearest_two(
         if cell_d2 < second_d2:
             best, best_d2, runner_up, second_d2 = _search_two(
                 tree_points, node_info, node_split, query, sibling, cell_d2, best, best_d2, runner_up, second_d2,
-                candidate, other, stack_node, stack_d2, stack_off, offsets, dist, dims,
+                candidate, other, stack_node, stack_d2, stack_off, offsets,
             )  # fmt: skip
         node = parent
-
-
-@njit(inline="always", **NJIT_FLAGS)
-def scratch(dims: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Scratch arrays of the searches over a D = ``dims`` tree: (stack_node (MAX_DEPTH,) int64, stack_d2
-    (MAX_DEPTH,), stack_off (MAX_DEPTH, D), offsets (D,), dist (LEAF_BLOCK,))."""
-    return (np.empty(MAX_DEPTH, dtype=np.int64), np.empty(MAX_DEPTH), np.empty((MAX_DEPTH, dims)), np.empty(dims),
-            np.empty(LEAF_BLOCK))  # fmt: skip
 
 
 @njit(**NJIT_FLAGS)
@@ -593,11 +567,14 @@ def nearest_kernel(
     """Nearest tree point of each query (Q, D) closer than sqrt(max_d2): its input row into
     ``index_out`` (Q,) int64 (-1 for none) and its squared distance into ``d2_out`` (Q,) (inf for none)."""
     dims = tree_points.shape[1]
-    stack_node, stack_d2, stack_off, offsets, dist = scratch(dims)
+    stack_node = np.empty(MAX_DEPTH, dtype=np.int64)
+    stack_d2 = np.empty(MAX_DEPTH)
+    stack_off = np.empty((MAX_DEPTH, dims))
+    offsets = np.empty(dims)
     for q in range(queries.shape[0]):
         offsets[:] = 0.0
         pos, d2 = _search_one(tree_points, node_info, node_split, queries[q], 0, 0.0, -1, max_d2, stack_node,
-                              stack_d2, stack_off, offsets, dist, dims)  # fmt: skip
+                              stack_d2, stack_off, offsets)  # fmt: skip
         index_out[q] = order[pos] if pos >= 0 else -1
         d2_out[q] = d2 if pos >= 0 else np.inf
 
@@ -618,44 +595,19 @@ def knn_kernel(
     (Q, k) int64, squared distances into ``d2_out`` (Q, k); k <= the number of tree points."""
     dims = tree_points.shape[1]
     k = index_out.shape[1]
-    stack_node, stack_d2, stack_off, offsets, dist = scratch(dims)
+    stack_node = np.empty(MAX_DEPTH, dtype=np.int64)
+    stack_d2 = np.empty(MAX_DEPTH)
+    stack_off = np.empty((MAX_DEPTH, dims))
+    offsets = np.empty(dims)
     knn_pos = np.empty(k, dtype=np.int64)
     knn_d2 = np.empty(k)
     for q in range(queries.shape[0]):
         _search(tree_points, node_info, node_split, queries[q], np.inf, knn_pos, knn_d2, stack_node, stack_d2,
-                stack_off, offsets, dist, dims)  # fmt: skip
+                stack_off, offsets)  # fmt: skip
         _sort_pairs(knn_d2, knn_pos)
         for j in range(k):
             index_out[q, j] = order[knn_pos[j]]
             d2_out[q, j] = knn_d2[j]
-
-
-@njit(inline="always", **NJIT_FLAGS)
-def _self_knn(
-    tree_points: np.ndarray, order: np.ndarray, node_info: np.ndarray, node_split: np.ndarray, start: int,
-    stop: int, index_out: np.ndarray, dims: int,
-) -> None:
-    """``self_knn_kernel`` over a D = ``dims`` tree."""
-    k = index_out.shape[1]
-    stack_node, stack_d2, stack_off, offsets, dist = scratch(dims)
-    knn_pos = np.empty(k, dtype=np.int64)
-    knn_d2 = np.empty(k)
-    for i in range(start, stop):
-        bound = np.inf
-        if i > start:
-            bound = 0.0
-            for j in range(k):
-                d2 = 0.0
-                for c in range(dims):
-                    e = tree_points[knn_pos[j], c] - tree_points[i, c]
-                    d2 += e * e
-                bound = max(bound, d2)
-            bound = bound * (1.0 + 1e-9) + 1e-300
-        _search(tree_points, node_info, node_split, tree_points[i], bound, knn_pos, knn_d2, stack_node, stack_d2,
-                stack_off, offsets, dist, dims)  # fmt: skip
-        row = order[i]
-        for j in range(k):
-            index_out[row, j] = order[knn_pos[j]]
 
 
 @njit(**NJIT_FLAGS)
@@ -676,10 +628,29 @@ def self_knn_kernel(
 
     The points are visited in tree order, so consecutive queries are neighbours: the largest distance
     from a point to its predecessor's k nearest bounds its own k-th distance, and its search takes only
-    points within that bound (the result is exact; the search is shorter). A 3-D tree (point positions)
-    runs a copy of the search compiled for three coordinates.
+    points within that bound (the result is exact; the search is shorter).
     """
-    if tree_points.shape[1] == 3:
-        _self_knn(tree_points, order, node_info, node_split, start, stop, index_out, 3)
-    else:
-        _self_knn(tree_points, order, node_info, node_split, start, stop, index_out, tree_points.shape[1])
+    dims = tree_points.shape[1]
+    k = index_out.shape[1]
+    stack_node = np.empty(MAX_DEPTH, dtype=np.int64)
+    stack_d2 = np.empty(MAX_DEPTH)
+    stack_off = np.empty((MAX_DEPTH, dims))
+    offsets = np.empty(dims)
+    knn_pos = np.empty(k, dtype=np.int64)
+    knn_d2 = np.empty(k)
+    for i in range(start, stop):
+        bound = np.inf
+        if i > start:
+            bound = 0.0
+            for j in range(k):
+                d2 = 0.0
+                for c in range(dims):
+                    e = tree_points[knn_pos[j], c] - tree_points[i, c]
+                    d2 += e * e
+                bound = max(bound, d2)
+            bound = bound * (1.0 + 1e-9) + 1e-300
+        _search(tree_points, node_info, node_split, tree_points[i], bound, knn_pos, knn_d2, stack_node, stack_d2,
+                stack_off, offsets)  # fmt: skip
+        row = order[i]
+        for j in range(k):
+            index_out[row, j] = order[knn_pos[j]]
