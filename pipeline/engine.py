@@ -166,13 +166,16 @@ class EngineStats:
     elapsed_s: float = 0.0
     worker_s: float = 0.0
     worker_cpu_s: float = 0.0
+    _batch_indices: set[int] = field(default_factory=set, repr=False)
 
     @property
     def frames_per_s(self) -> float:
         return (self.frames_done + self.frames_skipped) / self.elapsed_s if self.elapsed_s > 0 else 0.0
 
     def add(self, batch: BatchResult) -> None:
-        self.batches += 1
+        """Count a batch's result, or one part of it (``batch_parts``)."""
+        self._batch_indices.add(batch.index)
+        self.batches = len(self._batch_indices)
         self.frames_done += batch.frames_done
         self.worker_s += batch.worker_s
         self.worker_cpu_s += batch.worker_cpu_s
@@ -227,40 +230,65 @@ def run_batch(batch: FrameBatch, stage_fn: Callable[[Any], Any]) -> BatchResult:
     ``InputError`` (including "no valid points" / "blank image"), or when the stage returns None.
     Any other exception fails the task (dask retries it).
     """
-    t0 = time.perf_counter()
-    cpu0 = time.process_time()
-    results: list[Any] = []
+    return merge_parts(batch.index, list(batch_parts(batch, stage_fn)))
+
+
+def batch_parts(batch: FrameBatch, stage_fn: Callable[[Any], Any]) -> Iterator[BatchResult]:
+    """``run_batch`` one frame at a time: a ``BatchResult`` per frame (its result, or its skip) as soon as
+    the stage is done with it, so that an in-process consumer can overlap its own work with the next
+    frame's stage; a decode failure is a part of its own."""
     skipped: dict[str, int] = {}
     examples: list[str] = []
 
     def skip(reason: str, message: str) -> None:
         skipped[reason] = skipped.get(reason, 0) + 1
-        if len(examples) < _SKIP_EXAMPLES:
-            examples.append(message)
+        examples.append(message)
 
+    t0, cpu0 = time.perf_counter(), time.process_time()
     for frame in batch.source.frames(batch.topic, batch.start_ns, batch.end_ns, skip):
+        results: list[Any] = []
         reason = _blank_reason(frame)
         if reason is not None:
             skip(reason, f"{batch.topic} @ {frame.stamp_ns}: {reason}")
-            continue
-        try:
-            result = stage_fn(frame)
-        except InputError as err:
-            skip(f"stage {type(err).__name__}", f"{batch.topic} @ {frame.stamp_ns}: {err}")
-            continue
-        if result is None:
-            skip("stage returned None", f"{batch.topic} @ {frame.stamp_ns}: stage returned None")
-            continue
-        results.append(result)
+        else:
+            try:
+                result = stage_fn(frame)
+            except InputError as err:
+                skip(f"stage {type(err).__name__}", f"{batch.topic} @ {frame.stamp_ns}: {err}")
+                result = None
+            else:
+                if result is None:
+                    skip("stage returned None", f"{batch.topic} @ {frame.stamp_ns}: stage returned None")
+                else:
+                    results.append(result)
+        t1, cpu1 = time.perf_counter(), time.process_time()
+        yield BatchResult(batch.index, results, len(results), dict(skipped), examples[:_SKIP_EXAMPLES],
+                          t1 - t0, os.getpid(), cpu1 - cpu0)  # fmt: skip
+        skipped.clear()
+        examples.clear()
+        t0, cpu0 = t1, cpu1
+    if skipped:
+        yield BatchResult(batch.index, [], 0, dict(skipped), examples[:_SKIP_EXAMPLES],
+                          time.perf_counter() - t0, os.getpid(), time.process_time() - cpu0)  # fmt: skip
+
+
+def merge_parts(index: int, parts: Sequence[BatchResult]) -> BatchResult:
+    """One batch's ``BatchResult`` from its per-frame parts (``batch_parts``)."""
+    skipped: dict[str, int] = {}
+    examples: list[str] = []
+    for part in parts:
+        for reason, count in part.skip_reasons.items():
+            skipped[reason] = skipped.get(reason, 0) + count
+        examples.extend(part.skip_examples[: _SKIP_EXAMPLES - len(examples)])
     return BatchResult(
-        index=batch.index,
-        results=results,
-        frames_done=len(results),
+        index=index,
+        results=[r for part in parts for r in part.results],
+        frames_done=sum(part.frames_done for part in parts),
         skip_reasons=skipped,
         skip_examples=examples,
-        worker_s=time.perf_counter() - t0,
+        worker_s=sum(part.worker_s for part in parts),
         worker_pid=os.getpid(),
-        worker_cpu_s=time.process_time() - cpu0,
+        worker_cpu_s=sum(part.worker_cpu_s for part in parts),
     )
 
 
@@ -445,7 +473,7 @@ class Engine:
             self._warm_in_process = True
         for batch in batches:
             try:
-                yield run_batch(batch, stage_fn)
+                yield from batch_parts(batch, stage_fn)
             except FleetcalError:
                 raise
             except Exception as err:

@@ -293,6 +293,23 @@ def test_run_batch_reports_worker_side_counts(log_path: Path) -> None:
     assert result.worker_pid == os.getpid() and result.worker_s > 0 and result.worker_cpu_s > 0
 
 
+def test_in_process_yields_each_frame_before_staging_the_next(log_path: Path) -> None:
+    """In-process, a frame's result reaches the consumer before the batch's next frame is staged, so a
+    consumer on another thread overlaps with the stage (mapping registers while the next scan is prepared)."""
+    staged: list[int] = []
+
+    def stage(frame: LidarFrame) -> int:
+        staged.append(frame.stamp_ns)
+        return frame.stamp_ns
+
+    with Engine(workers=0, quiet=True) as engine:
+        seen_when_yielded = [len(staged) for _ in engine.map_frames(LogFrames(log_path), LIDAR, stage, batch_size=32)]
+        stats = engine.stats
+    assert seen_when_yielded == list(range(1, N_LIDAR - len(EMPTY_SCANS) + 1))
+    assert stats.batches == 2 and stats.frames_done == N_LIDAR - len(EMPTY_SCANS)
+    assert stats.skip_reasons == {"no valid points": len(EMPTY_SCANS)}
+
+
 def test_progress_bar_is_quiet_for_short_work_and_reports_rate() -> None:
     class Sink:
         def __init__(self) -> None:
