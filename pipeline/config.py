@@ -143,11 +143,8 @@ class CalibrationConfig:
             guess's) or ``auto`` (default): estimated, but held where the seeded 6-DoF runs do not confirm
             one another and the box is within 5 deg / 0.5 m (the initial guess is trusted); evidence in
             ``stages.calibration.config.SolverConfig``.
-        blur_sigma_px: Gaussian blur of camera images before the Sobel, pixels (0: max(2, width / 620)).
-        seed: random seed.
         repeats: seeded optimiser runs; their spread is the reported uncertainty.
         estimate_focal: also estimate a common scale of fx and fy.
-        min_points: scans with fewer points are skipped.
         motion_compensation: move lidar points to the camera stamp with the log's /tf odometry.
         point_times: with ``motion_compensation``, a scan with a per-point time field (all within 0.5 s of
             its stamp) moves each point from its own capture time, with the lidar's velocity over the
@@ -176,11 +173,8 @@ class CalibrationConfig:
     search_deg: float = 5.0
     search_m: float = 0.5
     translation: Literal["auto", "estimate", "hold"] = "auto"
-    blur_sigma_px: float = 0.0
-    seed: int = 0
     repeats: int = 3
     estimate_focal: bool = False
-    min_points: int = 100
     motion_compensation: bool = True
     point_times: bool = True
     camera_model: Literal["log", "plumb_bob", "rational_polynomial", "equidistant", "cylindrical", "none"] = "log"
@@ -213,9 +207,7 @@ class CalibrationConfig:
         _require(self.iterations >= 1, "calibration.iterations", "must be >= 1")
         _require(0 <= self.search_deg <= 180, "calibration.search_deg", "must be in [0, 180]")
         _require(self.search_m >= 0, "calibration.search_m", "must be >= 0")
-        _require(self.blur_sigma_px >= 0, "calibration.blur_sigma_px", "must be >= 0")
         _require(self.repeats >= 1, "calibration.repeats", "must be >= 1")
-        _require(self.min_points >= 0, "calibration.min_points", "must be >= 0")
 
 
 @dataclass

@@ -171,7 +171,6 @@ def solver_config(config: Config) -> SolverConfig:
         translation=c.translation,
         n_particles=c.particles,
         max_iterations=c.iterations,
-        seed=c.seed,
         repeats=c.repeats,
         estimate_focal=c.estimate_focal,
         estimate_time_offset=c.time_offset == "estimate",
@@ -225,7 +224,6 @@ class _ChosenCameraStage:
 
     stamps_ns: frozenset[int]
     first_ns: int
-    blur_sigma_px: float
     camera_model: str
     model: CameraModel | None
 
@@ -235,8 +233,7 @@ class _ChosenCameraStage:
         camera.camera = with_model(self.model if self.model is not None else camera.camera, self.camera_model)
         if camera.camera is None:
             raise InputError(f"camera {camera.topic} has no CameraInfo in the log (or its K is unusable)")
-        return camera_feature_stage(camera, self.blur_sigma_px if self.blur_sigma_px > 0 else None,
-                                    keep_image=camera.stamp_ns == self.first_ns)
+        return camera_feature_stage(camera, keep_image=camera.stamp_ns == self.first_ns)
 
 
 def calibration_engine(config: Config, quiet: bool = True) -> Engine:
@@ -270,13 +267,13 @@ def collect_frames(
     own = engine is None
     engine = Engine(workers=0, quiet=True, warmups=STAGE_WARMUPS) if engine is None else engine
     try:
-        lidar_stage = _ChosenLidarStage(frozenset(p.lidar_stamp_ns for p in chosen), c.feature, c.min_points)
+        lidar_stage = _ChosenLidarStage(frozenset(p.lidar_stamp_ns for p in chosen), c.feature, SolverConfig.min_points)
         scans = {r.stamp_ns if isinstance(r, _SparseScan) else r.lidar.stamp_ns: r for r in engine.map_frames(
             source, lidar_topic, lidar_stage, ordered=True, desc="calibration scans",
             log_times_ns=[p.lidar_log_ns for p in chosen])}
         lidar_problems, blank_scans = _problems(engine), engine.stats.skip_reasons.get("no valid points", 0)
         camera_stage = _ChosenCameraStage(frozenset(p.camera_stamp_ns for p in chosen), chosen[0].camera_stamp_ns,
-                                          c.blur_sigma_px, c.camera_model,
+                                          c.camera_model,
                                           info.model if camera_topic in config.io.rectified_topics else None)
         images = {r.stamp_ns: r for r in engine.map_frames(
             source, camera_topic, camera_stage, ordered=True, desc="calibration images",
@@ -370,7 +367,7 @@ def _joined(chosen: list[ChosenPair], scans: dict[int, Any], images: dict[int, C
     if sparse:
         raise InputError(
             f"no valid points: all {sparse} paired scans on {lidar_topic} have fewer than "
-            f"{c.min_points} valid points (empty clouds, or NaN or beyond io.max_range_m "
+            f"{SolverConfig.min_points} valid points (empty clouds, or NaN or beyond io.max_range_m "
             f"{config.io.max_range_m:g} m)"
         )
     if skips:

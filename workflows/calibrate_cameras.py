@@ -2,7 +2,7 @@
 
 Steps: pair the two image topics by header stamp (nearest within ``io.pairing_tolerance_ns``) ->
 keep ``calibration.frames`` pairs spread over the log -> gradients of each image (grey, histogram
-equalisation, Gaussian blur ``calibration.blur_sigma_px`` or ``default_blur_sigma_px(width)``,
+equalisation, Gaussian blur ``default_blur_sigma_px(width)``,
 Sobel) -> ``calibrate_affine`` on each pair -> the median of the per-pair parameters ->
 ``camera_camera.parquet``.
 
@@ -126,9 +126,8 @@ def select_spread(pairs: list[tuple[int, int]], max_pairs: int) -> list[tuple[in
     return [pairs[int(i)] for i in picks]
 
 
-def _gradients(image: NDArray[Any], blur_sigma_px: float) -> ImageGradients:
-    sigma = blur_sigma_px if blur_sigma_px > 0 else default_blur_sigma_px(int(image.shape[1]))
-    return compute_image_gradients(image, blur_sigma_px=sigma, equalize=True)
+def _gradients(image: NDArray[Any]) -> ImageGradients:
+    return compute_image_gradients(image, blur_sigma_px=default_blur_sigma_px(int(image.shape[1])), equalize=True)
 
 
 def collect_gradient_pairs(
@@ -158,7 +157,6 @@ def collect_gradient_pairs(
     wanted = {base_topic: {b for b, _ in chosen}, moving_topic: {m for _, m in chosen}}
     grads: dict[tuple[str, int], ImageGradients] = {}
     seen = {base_topic: -1, moving_topic: -1}
-    blur = config.calibration.blur_sigma_px
     for raw in reader.messages(topics=[base_topic, moving_topic]):
         seen[raw.topic] += 1
         index = seen[raw.topic]
@@ -169,7 +167,7 @@ def collect_gradient_pairs(
         except DecodeError as err:
             log.warning("skipping an undecodable image on %s at log time %d: %s", raw.topic, raw.log_time_ns, err)
             continue
-        grads[(raw.topic, index)] = _gradients(frame.image, blur)
+        grads[(raw.topic, index)] = _gradients(frame.image)
     out: list[tuple[ImageGradients, ImageGradients]] = []
     out_stamps: list[tuple[int, int]] = []
     for b, m in chosen:
@@ -191,7 +189,7 @@ def calibrate_cameras(reader: LogReader, base_topic: str, moving_topic: str, con
         results.append(calibrate_affine(
             base.gx, base.gy, moving.gx, moving.gy, search_px=AFFINE_SEARCH_PX, search_deg=c.search_deg,
             keep_fraction=AFFINE_KEEP_FRACTION, n_particles=c.particles, max_iterations=c.iterations,
-            seed=c.seed + i,
+            seed=i,
         ))  # fmt: skip
         log.info("pair %d: params %s score %.4f (identity %.4f)", i, results[-1].params, results[-1].score,
                  results[-1].initial_score)  # fmt: skip
