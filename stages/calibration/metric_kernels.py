@@ -265,6 +265,99 @@ def gom_batch_kernel(points: np.ndarray, lidar_c2: np.ndarray, lidar_s2: np.ndar
     return num, den, count
 
 
+@njit(inline="always", **NJIT_FLAGS)
+def _gom_term(gx: float, gy: float, m2: float, c2: float, s2: float, mag: float, cr: float,
+              sr: float) -> tuple[float, float]:
+    """One point's GOM numerator and weight (``gom_batch_kernel``'s loop body) for image gradient (gx, gy)
+    of squared magnitude m2 > 0 and the lidar gradient's cos / sin of twice its orientation and magnitude."""
+    mu = math.sqrt(m2) * mag
+    lc2 = c2 * cr - s2 * sr
+    ls2 = s2 * cr + c2 * sr
+    cos2d = ((gx * gx - gy * gy) * lc2 + 2.0 * gx * gy * ls2) / m2
+    return mu * (cos2d + 1.0), mu
+
+
+@njit(**_BATCH_FLAGS)
+def gom_pair_batch_kernel(points: np.ndarray, lidar_c2: np.ndarray, lidar_s2: np.ndarray, lidar_mag: np.ndarray,
+                          member: np.ndarray, planes0: np.ndarray, planes1: np.ndarray, n_planes: int,
+                          mask: np.ndarray, cam: np.ndarray, poses: np.ndarray, focal_scale: np.ndarray,
+                          roll2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``gom_batch_kernel`` of two feature channels of one scan against ``n_planes`` (1 or 2) gradient planes
+    of one camera in one pass: each point is projected once per pose and each plane sampled once, whichever
+    channels hold the point.
+
+    ``points`` (N, 3) is the union of the channels' points; ``lidar_c2, lidar_s2, lidar_mag`` and ``member``
+    are (N, 2): a channel's values at the points it holds (``member`` 1). ``planes1`` is read only when
+    ``n_planes`` is 2. Returns ``(sum mu * alpha, sum mu, projected points)``, each (P, 2, 2) (plane, channel);
+    per channel and plane they are ``gom_batch_kernel``'s sums on that channel's points alone, added in the
+    same order.
+    """
+    n_pose = poses.shape[0]
+    n = points.shape[0]
+    height = planes0.shape[0]
+    width = planes0.shape[1]
+    num = np.zeros((n_pose, 2, 2))
+    den = np.zeros((n_pose, 2, 2))
+    count = np.zeros((n_pose, 2, 2), dtype=np.int64)
+    for p in prange(n_pose):
+        R = poses[p]
+        r00, r01, r02, r03 = R[0, 0], R[0, 1], R[0, 2], R[0, 3]
+        r10, r11, r12, r13 = R[1, 0], R[1, 1], R[1, 2], R[1, 3]
+        r20, r21, r22, r23 = R[2, 0], R[2, 1], R[2, 2], R[2, 3]
+        fs = focal_scale[p]
+        cr = roll2[p, 0]
+        sr = roll2[p, 1]
+        n00 = n01 = n10 = n11 = 0.0
+        d00 = d01 = d10 = d11 = 0.0
+        c00 = c01 = c10 = c11 = 0
+        for i in range(n):
+            x0 = points[i, 0]
+            y0 = points[i, 1]
+            z0 = points[i, 2]
+            x = r00 * x0 + r01 * y0 + r02 * z0 + r03
+            y = r10 * x0 + r11 * y0 + r12 * z0 + r13
+            z = r20 * x0 + r21 * y0 + r22 * z0 + r23
+            u, v, ok = project_point(x, y, z, cam, fs)
+            if not ok or not _in_view(u, v, width, height, mask):
+                continue
+            in0 = member[i, 0] != 0
+            in1 = member[i, 1] != 0
+            gx, gy = sample_bicubic2(planes0, u, v)
+            m2 = gx * gx + gy * gy
+            if in0:
+                c00 += 1
+                if m2 > 1e-20:
+                    a, w = _gom_term(gx, gy, m2, lidar_c2[i, 0], lidar_s2[i, 0], lidar_mag[i, 0], cr, sr)
+                    n00 += a
+                    d00 += w
+            if in1:
+                c01 += 1
+                if m2 > 1e-20:
+                    a, w = _gom_term(gx, gy, m2, lidar_c2[i, 1], lidar_s2[i, 1], lidar_mag[i, 1], cr, sr)
+                    n01 += a
+                    d01 += w
+            if n_planes < 2:
+                continue
+            gx, gy = sample_bicubic2(planes1, u, v)
+            m2 = gx * gx + gy * gy
+            if in0:
+                c10 += 1
+                if m2 > 1e-20:
+                    a, w = _gom_term(gx, gy, m2, lidar_c2[i, 0], lidar_s2[i, 0], lidar_mag[i, 0], cr, sr)
+                    n10 += a
+                    d10 += w
+            if in1:
+                c11 += 1
+                if m2 > 1e-20:
+                    a, w = _gom_term(gx, gy, m2, lidar_c2[i, 1], lidar_s2[i, 1], lidar_mag[i, 1], cr, sr)
+                    n11 += a
+                    d11 += w
+        num[p, 0, 0], num[p, 0, 1], num[p, 1, 0], num[p, 1, 1] = n00, n01, n10, n11
+        den[p, 0, 0], den[p, 0, 1], den[p, 1, 0], den[p, 1, 1] = d00, d01, d10, d11
+        count[p, 0, 0], count[p, 0, 1], count[p, 1, 0], count[p, 1, 1] = c00, c01, c10, c11
+    return num, den, count
+
+
 @njit(**_BATCH_FLAGS)
 def levinson_batch_kernel(points: np.ndarray, lidar_weight: np.ndarray, edge_planes: np.ndarray,
                           mask: np.ndarray, cam: np.ndarray, poses: np.ndarray,

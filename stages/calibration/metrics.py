@@ -131,13 +131,26 @@ def pose_batch(T_camera_lidar_batch: NDArray[np.floating]) -> NDArray[np.float64
     return np.ascontiguousarray(T[:, :3, :])
 
 
-def _focal(focal_scale: NDArray[np.floating] | None, n_pose: int) -> NDArray[np.float64]:
+def focal_batch(focal_scale: NDArray[np.floating] | None, n_pose: int) -> NDArray[np.float64]:
+    """(P,) focal scales of a pose batch (None: 1 for every pose)."""
     if focal_scale is None:
         return np.ones(n_pose)
     fs = np.ascontiguousarray(focal_scale, dtype=np.float64).ravel()
     if fs.shape[0] != n_pose or not np.all(fs > 0):
         raise ProcessingError(f"focal_scale must be {n_pose} positive values")
     return fs
+
+
+def roll_turns(poses: NDArray[np.float64], R_gradients: NDArray[np.float64] | None) -> NDArray[np.float64]:
+    """(P, 2) cos and sin of twice each pose's roll about the optical axis relative to the camera rotation
+    ``R_gradients`` (3, 3) the lidar gradients were computed at (None: no turn) for poses (P, 3, 4)."""
+    roll2 = np.zeros((poses.shape[0], 2))
+    roll2[:, 0] = 1.0
+    if R_gradients is not None:
+        R_rel = poses[:, :, :3] @ R_gradients.T
+        roll = np.arctan2(R_rel[:, 1, 0], R_rel[:, 0, 0])
+        roll2 = np.ascontiguousarray(np.column_stack([np.cos(2 * roll), np.sin(2 * roll)]))
+    return roll2
 
 
 @dataclass(frozen=True)
@@ -263,15 +276,10 @@ class GomScorer:
             NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
         """The GOM kernel's numerator, denominator and projected-point count per pose."""
         poses = pose_batch(T_camera_lidar_batch)
-        roll2 = np.zeros((poses.shape[0], 2))
-        roll2[:, 0] = 1.0
-        if self.R_gradients is not None:
-            R_rel = poses[:, :, :3] @ self.R_gradients.T
-            roll = np.arctan2(R_rel[:, 1, 0], R_rel[:, 0, 0])
-            roll2 = np.ascontiguousarray(np.column_stack([np.cos(2 * roll), np.sin(2 * roll)]))
         num, den, count = mk.gom_batch_kernel(self.points, self.c2, self.s2, self.magnitude, self.image.planes,
-                                              self.image.mask, self.cam, poses, _focal(focal_scale, poses.shape[0]),
-                                              roll2)
+                                              self.image.mask, self.cam, poses,
+                                              focal_batch(focal_scale, poses.shape[0]),
+                                              roll_turns(poses, self.R_gradients))
         return num, den, count
 
 
@@ -300,7 +308,7 @@ class NmiScorer:
               focal_scale: NDArray[np.floating] | None = None) -> MetricBatch:
         poses = pose_batch(T_camera_lidar_batch)
         nmi, count = mk.nmi_batch_kernel(self.points, self.lidar_bin, self.planes, self.mask, self.cam, poses,
-                                         _focal(focal_scale, poses.shape[0]), self.bins)
+                                         focal_batch(focal_scale, poses.shape[0]), self.bins)
         return MetricBatch(np.asarray(nmi), np.asarray(count))
 
 
@@ -326,7 +334,7 @@ class LevinsonScorer:
               focal_scale: NDArray[np.floating] | None = None) -> MetricBatch:
         poses = pose_batch(T_camera_lidar_batch)
         s, count = mk.levinson_batch_kernel(self.points, self.weight, self.planes, self.mask, self.cam, poses,
-                                            _focal(focal_scale, poses.shape[0]))
+                                            focal_batch(focal_scale, poses.shape[0]))
         return MetricBatch(np.asarray(s) * self.scale, np.asarray(count))
 
 

@@ -23,6 +23,7 @@ from fleetcal.stages.calibration.frame import (
     default_blur_sigma_px,
     fold_rectification,
 )
+from fleetcal.stages.calibration.gom_channels import GomChannels
 from fleetcal.stages.calibration.metrics import (
     GomScorer,
     GradientPlanes,
@@ -157,13 +158,16 @@ class CalibrationProblem:
         self.ring_spacing_rad = [ring_spacing_rad(f.points_xyz) for f in frames]  # per frame, NaN: untold
         self.ring_slant_deg = [ring_slant_deg(f.camera, T_c_c0 @ T0)  # per frame at the initial guess, NaN: untold
                                for f, T_c_c0 in zip(frames, self.T_camera_camera0, strict=True)]
+        self.together: list[GomChannels | None] = []  # per frame: its GOM scorers in one pass, or None
         channels: list[list[Scorer]] = []
         for f, T_c_c0, ring in zip(frames, self.T_camera_camera0, self.ring_spacing_rad, strict=True):
-            scorers, n = self._prepare(f, T_c_c0 @ T0)
+            scorers, n, selections = self._prepare(f, T_c_c0 @ T0)
             channels.append(scorers)
             sigma_px, across = self._ring_smoothing(f, T_c_c0 @ T0, ring)
             smoothed = partial(GradientPlanes.blurred_along, direction_uv=across, sigma_px=sigma_px)
-            self.scorers.append(scorers + (self._gom_twins(scorers, smoothed) if sigma_px > 0 else []))
+            twins = self._gom_twins(scorers, smoothed) if sigma_px > 0 else []
+            self.scorers.append(scorers + twins)
+            self.together.append(_together(scorers, selections, twins))
             self.points_used.append(n)
             self.ring_smoothing_px.append(sigma_px)
         self.explore_scorers: list[list[Scorer]] = []
@@ -210,8 +214,9 @@ class CalibrationProblem:
         planes = planes_of(gom[0].image)
         return [s.against(planes, stride) for s in gom]
 
-    def _prepare(self, f: CalibrationFrame, T_cam_lidar: Mat4) -> tuple[list[Scorer], int]:
-        """Scorers of one frame (one per feature channel; Levinson: one) and its largest point count."""
+    def _prepare(self, f: CalibrationFrame, T_cam_lidar: Mat4) -> tuple[list[Scorer], int, NDArray[np.bool_] | None]:
+        """Scorers of one frame (one per feature channel; Levinson: one), its largest point count and, for
+        GOM, which of the frame's points each channel keeps ((C, N) bool; other metrics: None)."""
         cfg = self.config
         pts = np.asarray(f.points_xyz, dtype=np.float64)
         feat = np.asarray(f.feature, dtype=np.float64)
@@ -235,29 +240,29 @@ class CalibrationProblem:
             if f.intensity is None:
                 raise ProcessingError(f"frame {f.label!r}: NMI needs the image intensity")
             return [NmiScorer(pts, feat[:, c], f.intensity, f.camera, f.mask, cfg.nmi_bins)
-                    for c in range(feat.shape[1])], pts.shape[0]
+                    for c in range(feat.shape[1])], pts.shape[0], None
         if cfg.metric == "levinson":  # depth discontinuities: the feature does not enter
             around = camera_sphere_neighbours(pts, T_cam_lidar, cfg.sphere_k, cfg.neighbours_on("camera"))
             weight = depth_discontinuities(pts, around, cfg.levinson_min_jump_m)
             sel = weight > 0
             edges = levinson_edge_image(f.gradients.magnitude, cfg.levinson_blur_px)
-            return [LevinsonScorer(pts[sel], weight[sel], edges, f.camera, f.mask)], int(sel.sum())
+            return [LevinsonScorer(pts[sel], weight[sel], edges, f.camera, f.mask)], int(sel.sum()), None
         scorers: list[Scorer] = []
-        counts: list[int] = []
+        selections: list[NDArray[np.bool_]] = []
         neighbours: NDArray[np.int64] | None = None  # one sphere search per frame, shared by the channels
         image = GradientPlanes.of_stacked(f.gradients.gxy, f.camera, f.mask)  # shared too
         for c in range(feat.shape[1]):
-            scorer, n, neighbours = self._gom_scorer(f, raw, pts, feat[:, c], T_cam_lidar, image, neighbours)
+            scorer, sel, neighbours = self._gom_scorer(f, raw, pts, feat[:, c], T_cam_lidar, image, neighbours)
             scorers.append(scorer)
-            counts.append(n)
-        return scorers, max(counts)
+            selections.append(sel)
+        return scorers, max(int(sel.sum()) for sel in selections), np.array(selections)
 
     def _gom_scorer(self, f: CalibrationFrame, raw: NDArray[np.float64], pts: NDArray[np.float64],
                     feat: NDArray[np.float64], T_cam_lidar: Mat4, image: GradientPlanes,
-                    neighbours: NDArray[np.int64] | None) -> tuple[Scorer, int, NDArray[np.int64]]:
+                    neighbours: NDArray[np.int64] | None) -> tuple[GomScorer, NDArray[np.bool_], NDArray[np.int64]]:
         """GOM scorer of one feature channel (lidar gradients, paper 3.3, and the point selection) against
-        the frame's ``image`` gradients, its point count and the sphere neighbours it used
-        (``neighbours``: another channel's, or None)."""
+        the frame's ``image`` gradients, which of ``pts`` it keeps ((N,) bool) and the sphere neighbours it
+        used (``neighbours``: another channel's, or None)."""
         cfg = self.config
         if cfg.viewpoint == "lidar":
             grads = lidar_view_gradients(raw, pts, feat, T_cam_lidar,
@@ -276,7 +281,7 @@ class CalibrationProblem:
         gx, gy = grads.gx[sel], grads.gy[sel]
         scorer = GomScorer(pts[sel], gx, gy, magnitude[sel], image, f.camera,
                            T_cam_lidar[:3, :3])
-        return scorer, int(sel.sum()), grads.neighbours
+        return scorer, sel, grads.neighbours
 
     def T_camera_lidar_batch(self, x: NDArray[np.floating]) -> NDArray[np.float64]:
         """(P, 4, 4) extrinsics (reference camera <- lidar) of parameters x (P, D)."""
@@ -322,7 +327,16 @@ class CalibrationProblem:
         self.evaluations += x.shape[0]
         scorers = self.explore_scorers if explore else self.scorers
         chosen = range(len(scorers)) if frames is None else frames
-        return [[scorer.score(self.T_camera_camera0[k] @ T_c0, focal) for scorer in scorers[k]] for k in chosen]
+        together: list[GomChannels | None] = [None] * len(scorers) if explore else self.together
+        return [self._frame_batches(scorers[k], together[k], self.T_camera_camera0[k] @ T_c0, focal) for k in chosen]
+
+    @staticmethod
+    def _frame_batches(scorers: list[Scorer], together: GomChannels | None, T: NDArray[np.float64],
+                       focal: NDArray[np.floating] | None) -> list[MetricBatch]:
+        """One frame's metric batches, a scorer's each, for its extrinsics ``T`` (P, 4, 4)."""
+        if together is not None:
+            return together.score(T, focal)
+        return [scorer.score(T, focal) for scorer in scorers]
 
     def _channel_counts(self, x: NDArray[np.floating]) -> list[NDArray[np.int64]]:
         """Projected points per frame and channel of the first candidate of x."""
@@ -411,3 +425,13 @@ class CalibrationProblem:
         polish = pattern_search(on_free(self.evaluate), swarm.best_x, 0.1 * (upper - lower), lower, upper,
                                 min_step_fraction=0.005, score_at_x0=None if subset else swarm.best_score)
         return in_full(swarm), in_full(polish)
+
+
+def _together(channels: list[Scorer], selections: NDArray[np.bool_] | None, twins: list[Scorer]) -> GomChannels | None:
+    """The frame's GOM scorers in one pass (``GomChannels``) where there are several (one or two channels and
+    their ring-smoothed twins); None for a single scorer, more than two channels or another metric."""
+    gom = [s for s in channels if isinstance(s, GomScorer)]
+    if selections is None or len(gom) != len(channels) or len(gom) > 2 or len(channels) + len(twins) < 2:
+        return None
+    twin_planes = twins[0].image if twins and isinstance(twins[0], GomScorer) else None
+    return GomChannels(selections, gom, twin_planes)
