@@ -38,3 +38,40 @@ def test_camera_delta_is_the_turn_and_shift_in_the_camera_axes() -> None:
     delta = camera_delta(T, T_ref)
     np.testing.assert_allclose(delta[:3], [0.0, 0.0, 1.0], atol=1e-9)
     np.testing.assert_allclose(delta[3:], T[:3, 3] - T_ref[:3, 3])
+
+
+def test_ring_alias_optima_are_polished_moves_along_the_lidar_axis_and_bound_the_deviation() -> None:
+    """The estimate moved 1-3 ring spacings either way along the lidar's axis (moves outside the box
+    skipped), each polished to a pose scoring at least as well as where it started; twice the deviation
+    reaches the farthest alias optimum that scores as well as the estimate, axis by axis."""
+    from fleetcal.stages.calibration import CalibrationProblem, SolverConfig
+    from fleetcal.stages.calibration.uncertainty import (
+        BANDS_PER_FRAME,
+        axis_deviations,
+        band_scores,
+        ring_alias_optima,
+    )
+    from tests.test_calibration_synthetic import synthetic_frame, true_T_camera_lidar
+
+    T_true = true_T_camera_lidar()
+    problem = CalibrationProblem([synthetic_frame(0)], T_true, SolverConfig(search_deg=2.0, search_m=0.5))
+    x_true, free = np.zeros(6), problem.free_parameters()
+    aliases = ring_alias_optima(problem, x_true, free, ring_spacing_deg=0.5, range_m=10.0)
+    assert len(aliases) == 6  # 8.7, 17 and 26 cm either way, all inside the 0.5 m box
+    lidar_axis = T_true[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    for k, x in enumerate(aliases):
+        rings, sign = 1 + k // 2, -1.0 if k % 2 == 0 else 1.0
+        T_start = T_true.copy()
+        T_start[:3, 3] += sign * rings * np.radians(0.5) * 10.0 * lidar_axis
+        start_score = problem.evaluate(problem.x_of(T_start)[None])[0]
+        assert problem.evaluate(x[None])[0] >= start_score
+    scores = band_scores(problem, np.vstack([x_true, *aliases]), BANDS_PER_FRAME)
+    alike = [x for k, x in enumerate(aliases, start=1) if scores_alike(scores[0] - scores[k])]
+    deviations = axis_deviations(problem, x_true, [], np.zeros(6), free, aliases)
+    assert deviations.alike_aliases == len(alike) >= 1
+    farthest = np.max([np.abs(camera_delta(problem.T_camera_lidar(x), T_true)) for x in alike], axis=0)
+    np.testing.assert_allclose(2 * deviations.rotation_deg, farthest[:3], rtol=1e-9)
+    np.testing.assert_allclose(2 * deviations.translation_m, farthest[3:], rtol=1e-9)
+    assert ring_alias_optima(problem, x_true, problem.free_parameters(hold_translation=True), 0.5, 10.0) == []
+    assert ring_alias_optima(problem, x_true, free, float("nan"), 10.0) == []
+    assert len(ring_alias_optima(problem, x_true, free, 2.0, 10.0)) == 2  # 35 cm in the box, 70 and 105 cm not

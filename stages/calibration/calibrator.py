@@ -48,7 +48,7 @@ from fleetcal.stages.calibration.timing import (
     estimate_timing,
     extrinsic_deviation,
 )
-from fleetcal.stages.calibration.uncertainty import axis_deviations, sampling_floor
+from fleetcal.stages.calibration.uncertainty import axis_deviations, ring_alias_optima, sampling_floor
 
 Verdict = Literal["ok", "recalibrated", "suspect"]
 
@@ -384,11 +384,13 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
              or translation_error_m(T_best, problem.T_init) > cfg.ok_translation_m)
     ring_deg, slant_deg = (_finite_median(problem.ring_spacing_rad, np.degrees),
                            _finite_median(problem.ring_slant_deg))
+    range_m, off_axis = problem.typical_range_and_off_axis()
+    aliases = (ring_alias_optima(problem, x_best, problem.free_parameters(hold), ring_deg, range_m)
+               if cfg.metric == "gom" and ring_deg > cfg.sparse_rings_above_deg else [])  # GOM: image bands
     deviations = axis_deviations(problem, x_best, [run.x for i, run in enumerate(runs) if i != best_index],
-                                 np.hypot(sampling_floor(ring_deg, problem.pixel_deg(),
-                                                         *problem.typical_range_and_off_axis()),
+                                 np.hypot(sampling_floor(ring_deg, problem.pixel_deg(), range_m, off_axis),
                                           _timing_floor(clock_field, timing, cfg, T_best)),
-                                 problem.free_parameters(hold))
+                                 problem.free_parameters(hold), aliases)
     uncertain = _uncertain_axes(deviations.rotation_deg, deviations.translation_m, cfg)
     reason = ""
     edge = box_edge(x_best, problem.lower, problem.upper, cfg.box_edge_fraction, problem.free_parameters(hold))
@@ -424,7 +426,8 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     elif uncertain:
         reason = (f"the estimate is uncertain beyond {cfg.agree_rotation_deg:g} deg / "
                   f"{100 * cfg.agree_translation_m:g} cm (2 sigma: {', '.join(uncertain)}; "
-                  f"{deviations.alike_runs} other seeded run(s) score as well): "
+                  f"{deviations.alike_runs} other seeded run(s) and {deviations.alike_aliases} optima a few lidar "
+                  "rings away score as well): "
                   "use more frames (--frames) or a log with more structure near the camera")
     verdict: Verdict
     if reason:

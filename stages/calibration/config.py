@@ -140,8 +140,9 @@ class SolverConfig:
             PJLab rig1's 34-46 cm are named by the translation profile (``weak_move_max_m``). Between 0.42 and
             1.33 deg is unmeasured. Why, on the simulated 32 beams: near ground lines up with the image only
             by chance there (GOM 0.49 vs 0.79 with 64 beams), and eq. 11's denominator lets a pose 30 cm off
-            score higher by moving those points onto weaker image gradients (README). The estimate and verdict
-            are unchanged; the result says so.
+            score higher by moving those points onto weaker image gradients (README). Such a rig's estimate
+            is also probed one to three rings away along the lidar's axis (``uncertainty.ring_alias_optima``);
+            optima there that score as well widen its deviations (docs/accuracy.md "Sparse rings").
         slanted_rings_above_deg: sparse rings (``sparse_rings_above_deg``) that cross the image slanted more
             than this (``CalibrationResult.ring_slant_deg``: a lidar rolled to the camera) make a GOM verdict
             ``suspect``, and ``neighbours_by="auto"`` searches the lidar sphere's neighbours by ``angle``
