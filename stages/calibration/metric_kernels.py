@@ -277,6 +277,22 @@ def _gom_term(gx: float, gy: float, m2: float, c2: float, s2: float, mag: float,
     return mu * (cos2d + 1.0), mu
 
 
+@njit(inline="always", **NJIT_FLAGS)
+def _pair_terms(planes: np.ndarray, u: float, v: float, i: int, in0: bool, in1: bool, lidar_c2: np.ndarray,
+                lidar_s2: np.ndarray, lidar_mag: np.ndarray, cr: float, sr: float) -> tuple[float, float, float, float]:
+    """Point i's GOM numerator and weight for channels 0 and 1 at pixel (u, v) of ``planes`` (0 for a channel
+    that does not hold the point, or where the image gradient vanishes)."""
+    gx, gy = sample_bicubic2(planes, u, v)
+    m2 = gx * gx + gy * gy
+    a0 = w0 = a1 = w1 = 0.0
+    if m2 > 1e-20:
+        if in0:
+            a0, w0 = _gom_term(gx, gy, m2, lidar_c2[i, 0], lidar_s2[i, 0], lidar_mag[i, 0], cr, sr)
+        if in1:
+            a1, w1 = _gom_term(gx, gy, m2, lidar_c2[i, 1], lidar_s2[i, 1], lidar_mag[i, 1], cr, sr)
+    return a0, w0, a1, w1
+
+
 @njit(**_BATCH_FLAGS)
 def gom_pair_batch_kernel(points: np.ndarray, lidar_c2: np.ndarray, lidar_s2: np.ndarray, lidar_mag: np.ndarray,
                           member: np.ndarray, planes0: np.ndarray, planes1: np.ndarray, n_planes: int,
@@ -322,36 +338,22 @@ def gom_pair_batch_kernel(points: np.ndarray, lidar_c2: np.ndarray, lidar_s2: np
                 continue
             in0 = member[i, 0] != 0
             in1 = member[i, 1] != 0
-            gx, gy = sample_bicubic2(planes0, u, v)
-            m2 = gx * gx + gy * gy
-            if in0:
-                c00 += 1
-                if m2 > 1e-20:
-                    a, w = _gom_term(gx, gy, m2, lidar_c2[i, 0], lidar_s2[i, 0], lidar_mag[i, 0], cr, sr)
-                    n00 += a
-                    d00 += w
-            if in1:
-                c01 += 1
-                if m2 > 1e-20:
-                    a, w = _gom_term(gx, gy, m2, lidar_c2[i, 1], lidar_s2[i, 1], lidar_mag[i, 1], cr, sr)
-                    n01 += a
-                    d01 += w
+            a0, w0, a1, w1 = _pair_terms(planes0, u, v, i, in0, in1, lidar_c2, lidar_s2, lidar_mag, cr, sr)
+            n00 += a0
+            d00 += w0
+            n01 += a1
+            d01 += w1
+            c00 += in0
+            c01 += in1
             if n_planes < 2:
                 continue
-            gx, gy = sample_bicubic2(planes1, u, v)
-            m2 = gx * gx + gy * gy
-            if in0:
-                c10 += 1
-                if m2 > 1e-20:
-                    a, w = _gom_term(gx, gy, m2, lidar_c2[i, 0], lidar_s2[i, 0], lidar_mag[i, 0], cr, sr)
-                    n10 += a
-                    d10 += w
-            if in1:
-                c11 += 1
-                if m2 > 1e-20:
-                    a, w = _gom_term(gx, gy, m2, lidar_c2[i, 1], lidar_s2[i, 1], lidar_mag[i, 1], cr, sr)
-                    n11 += a
-                    d11 += w
+            a0, w0, a1, w1 = _pair_terms(planes1, u, v, i, in0, in1, lidar_c2, lidar_s2, lidar_mag, cr, sr)
+            n10 += a0
+            d10 += w0
+            n11 += a1
+            d11 += w1
+            c10 += in0
+            c11 += in1
         num[p, 0, 0], num[p, 0, 1], num[p, 1, 0], num[p, 1, 1] = n00, n01, n10, n11
         den[p, 0, 0], den[p, 0, 1], den[p, 1, 0], den[p, 1, 1] = d00, d01, d10, d11
         count[p, 0, 0], count[p, 0, 1], count[p, 1, 0], count[p, 1, 1] = c00, c01, c10, c11
