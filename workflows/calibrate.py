@@ -129,6 +129,7 @@ class PairCalibration:
             **{name: _finite_or_none(float(value)) for name, value in zip(STD_COLUMNS, np.concatenate(
                 self.axis_deviations()), strict=True)},
             "alike_runs": self.result.alike_runs,
+            "alike_aliases": self.result.alike_aliases,
             "initialisation": self.initialisation,
             "initial_candidates": self.initial_candidates,
             **_timing_json(self.timing()),

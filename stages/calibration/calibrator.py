@@ -106,6 +106,8 @@ class CalibrationResult:
             best, and the scan's sampling cell); translation NaN where held. The verdict is ``suspect`` where
             twice a deviation exceeds ``agree_rotation_deg`` / ``agree_translation_m``.
         alike_runs: other seeded runs that score as well as the best.
+        alike_aliases: optima one to three lidar rings away along the lidar's axis that score as well as the
+            best (``uncertainty.ring_alias_optima``; probed on rings sparser than ``sparse_rings_above_deg``).
         time_offset_s, time_offset_std_s: the camera's clock minus the lidar's and its deviation, seconds
             (``SolverConfig.estimate_time_offset``); NaN where not estimated; where the log's motion does
             not constrain it, NaN with an infinite deviation (unobservable). An offset's deviation times the
@@ -144,6 +146,7 @@ class CalibrationResult:
     std_rotation_deg: NDArray[np.float64] = dataclasses.field(default_factory=lambda: np.full(3, np.nan))
     std_translation_m: NDArray[np.float64] = dataclasses.field(default_factory=lambda: np.full(3, np.nan))
     alike_runs: int = 0
+    alike_aliases: int = 0
     time_offset_s: float = float("nan")
     time_offset_std_s: float = float("nan")
     readout_s: float = float("nan")
@@ -448,7 +451,8 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         weak_translation_axes=weak, ring_spacing_deg=ring_deg,
         sparse_rings=bool(ring_deg > cfg.sparse_rings_above_deg), ring_slant_deg=slant_deg,
         std_rotation_deg=deviations.rotation_deg, std_translation_m=deviations.translation_m,
-        alike_runs=deviations.alike_runs, **_timing_fields(problem, timing, cfg))
+        alike_runs=deviations.alike_runs, alike_aliases=deviations.alike_aliases,
+        **_timing_fields(problem, timing, cfg))
 
 
 def _time_field(problem: CalibrationProblem) -> TimeShiftField | None:
