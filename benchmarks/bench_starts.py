@@ -303,10 +303,11 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="fleetcal_starts_") as tmp:
         if args.jobs > 1:
             rows = run_parallel(args, tmp)
-        for name in args.cases if args.jobs <= 1 else []:
-            case = load_real(name, args.quick) if name in REAL else load_sim(name, Path(tmp), args.quick)
-            if case is not None:
-                rows[name] = run_case(name, case, args.starts, args.deg, args.m)
+        else:
+            for name in args.cases:
+                case = load_real(name, args.quick) if name in REAL else load_sim(name, Path(tmp), args.quick)
+                if case is not None:
+                    rows[name] = run_case(name, case, args.starts, args.deg, args.m)
     lines = table(rows)
     widths = [max(len(h), *(len(line[i]) for line in lines)) for i, h in enumerate(HEADER)]
     print("  ".join(h.rjust(w) for h, w in zip(HEADER, widths, strict=True)))

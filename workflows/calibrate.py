@@ -207,12 +207,11 @@ class _ChosenLidarStage:
 
     stamps_ns: frozenset[int]
     feature: str
-    min_points: int
 
     def __call__(self, lidar: LidarFrame) -> LidarFeatures | _SparseScan | None:
         if lidar.stamp_ns not in self.stamps_ns:
             return None
-        if lidar.n_points < self.min_points:
+        if lidar.n_points < SolverConfig.min_points:
             return _SparseScan(lidar.stamp_ns, lidar.n_points)
         return lidar_feature_stage(lidar, self.feature)
 
@@ -268,7 +267,7 @@ def collect_frames(
     own = engine is None
     engine = Engine(workers=0, quiet=True, warmups=STAGE_WARMUPS) if engine is None else engine
     try:
-        lidar_stage = _ChosenLidarStage(frozenset(p.lidar_stamp_ns for p in chosen), c.feature, SolverConfig.min_points)
+        lidar_stage = _ChosenLidarStage(frozenset(p.lidar_stamp_ns for p in chosen), c.feature)
         scans = {r.stamp_ns if isinstance(r, _SparseScan) else r.lidar.stamp_ns: r for r in engine.map_frames(
             source, lidar_topic, lidar_stage, ordered=True, desc="calibration scans",
             log_times_ns=[p.lidar_log_ns for p in chosen])}

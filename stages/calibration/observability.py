@@ -16,7 +16,7 @@ from functools import partial
 import numpy as np
 from numpy.typing import NDArray
 
-from fleetcal.stages.calibration.problem import CalibrationProblem, embed
+from fleetcal.stages.calibration.problem import CalibrationProblem, evaluate_embedded
 from fleetcal.stages.calibration.pso import pattern_search
 
 AXES = ("x", "y", "z")
@@ -25,11 +25,6 @@ _REFIT_STEP_DEG = 0.25  # first pattern-search steps of the re-fit: rotation, de
 _REFIT_STEP_M = 0.02  # ... and translation, metres
 _REFIT_STEP_FOCAL = 0.005
 _REFIT_MIN_STEP_FRACTION = 0.05  # down to 0.0125 deg / 1 mm
-
-
-def _evaluate_embedded(problem: CalibrationProblem, z: NDArray[np.floating], base: NDArray[np.float64],
-                       free: NDArray[np.bool_], frames: Sequence[int] | None) -> NDArray[np.float64]:
-    return problem.evaluate(embed(z, base, free), frames)
 
 
 def profile_drop(problem: CalibrationProblem, x_best: NDArray[np.float64], best_score: float, index: int,
@@ -50,7 +45,7 @@ def profile_drop(problem: CalibrationProblem, x_best: NDArray[np.float64], best_
     for sign in (-1.0, 1.0):
         x0 = x_best.copy()
         x0[index] += sign * step
-        objective = partial(_evaluate_embedded, problem, base=x0, free=free, frames=frames)
+        objective = partial(evaluate_embedded, problem, base=x0, free=free, frames=frames)
         fit = pattern_search(objective, x0[free], steps[free], lower[free], upper[free],
                              min_step_fraction=_REFIT_MIN_STEP_FRACTION)
         drops.append(best_score - fit.best_score)

@@ -67,6 +67,13 @@ def embed(z: NDArray[np.floating], base: NDArray[np.float64], free: NDArray[np.b
     return x
 
 
+def evaluate_embedded(problem: CalibrationProblem, z: NDArray[np.floating], base: NDArray[np.float64],
+                      free: NDArray[np.bool_], frames: Sequence[int] | None = None) -> NDArray[np.float64]:
+    """``problem.evaluate`` of the free parameters z (P, F), the others at ``base`` (``embed``); ``frames``: of
+    those frames only (None: all). Picklable with ``functools.partial``, unlike a closure."""
+    return problem.evaluate(embed(z, base, free), frames)
+
+
 def _view_cull(points_cam: NDArray[np.float64], camera: CameraModel, margin_rad: float,
                margin_m: float) -> NDArray[np.bool_]:
     """Points that could enter the image for any pose in the search box (conservative)."""

@@ -47,7 +47,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from fleetcal.stages.calibration.metrics import GomScorer
-from fleetcal.stages.calibration.problem import CalibrationProblem, embed
+from fleetcal.stages.calibration.problem import CalibrationProblem, embed, evaluate_embedded
 from fleetcal.stages.calibration.pso import pattern_search
 
 BANDS_PER_FRAME = 8
@@ -123,12 +123,6 @@ def sampling_floor(ring_spacing_deg: float, pixel_deg: float, range_m: float,
     return np.array([0.0, 0.0, 0.0, across_m, across_m, along_m])
 
 
-def _evaluate_at(problem: CalibrationProblem, z: NDArray[np.floating], base: NDArray[np.float64],
-                 free: NDArray[np.bool_]) -> NDArray[np.float64]:
-    """The objective at the free parameters z (P, F), the others at ``base``."""
-    return problem.evaluate(embed(z, base, free))
-
-
 def ring_alias_optima(problem: CalibrationProblem, x_best: NDArray[np.float64], free: NDArray[np.bool_],
                       ring_spacing_deg: float, range_m: float) -> list[NDArray[np.float64]]:
     """Local optima near the estimate x_best (D,) moved ``ALIAS_RINGS`` ring spacings (``ring_spacing_deg``
@@ -150,7 +144,7 @@ def ring_alias_optima(problem: CalibrationProblem, x_best: NDArray[np.float64], 
             x0[:6] = problem.x_of(T_moved)
             if np.any(x0[free] < lower) or np.any(x0[free] > upper):
                 continue
-            fit = pattern_search(partial(_evaluate_at, problem, base=x0, free=free), x0[free],
+            fit = pattern_search(partial(evaluate_embedded, problem, base=x0, free=free), x0[free],
                                  _ALIAS_POLISH_STEPS[: x0.size][free], lower, upper, min_step_fraction=0.05)
             optima.append(embed(fit.best_x, x0, free)[0])
     return optima
