@@ -64,7 +64,27 @@ def test_problem_scores_two_features_in_one_pass_as_one_by_one() -> None:
     assert problem.together[0] is not None
     x = np.random.default_rng(0).uniform(problem.lower, problem.upper, (32, problem.lower.size))
     scores, counts = problem.frame_scores(x)
-    problem.together = [None]
+    problem.full.together[0] = None
     alone_scores, alone_counts = problem.frame_scores(x)
     np.testing.assert_array_equal(counts, alone_counts)
     np.testing.assert_allclose(scores, alone_scores, rtol=0, atol=1e-12)
+
+
+def test_moved_points_are_scored_in_one_pass_too() -> None:
+    """Points replaced in the frame's scorers (as ``timing`` moves them to the rows' times) are what the one-pass
+    scoring and the swarm's views score after ``points_moved``."""
+    frame = synthetic_frame(1, feature="range")
+    normals = synthetic_frame(1, feature="normals")
+    both = type(frame)(frame.points_xyz, np.column_stack([frame.feature, normals.feature]), frame.camera,
+                       frame.gradients, intensity=frame.intensity, label=frame.label)  # fmt: skip
+    problem = CalibrationProblem([both], perturb(true_T_camera_lidar(), 1.0, 0.05, 3), SolverConfig())
+    x = np.random.default_rng(0).uniform(problem.lower, problem.upper, (16, problem.lower.size))
+    before = problem.evaluate(x, problem.search_view(0))
+    for j, scorer in enumerate(problem.scorers[0]):
+        problem.scorers[0][j] = scorer.subset(np.arange(scorer.points.shape[0]))
+        problem.scorers[0][j].points = scorer.points + np.array([0.05, -0.03, 0.02])
+    problem.points_moved()
+    moved = problem.frame_scores(x)[0]
+    problem.full.together[0] = None
+    np.testing.assert_allclose(moved, problem.frame_scores(x)[0], rtol=0, atol=1e-12)
+    assert np.max(np.abs(problem.evaluate(x, problem.search_view(0)) - before)) > 1e-3

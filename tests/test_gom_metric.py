@@ -147,8 +147,8 @@ def test_gom_kernel_matches_numpy_reference(model: str) -> None:
 
 
 def test_gom_scorer_against_blurred_planes_shares_the_lidar_side() -> None:
-    """``against(image.blurred(s), stride)`` scores like a scorer built from every stride-th point and the
-    Gaussian-blurred gradients, without copying the frame's planes for each channel."""
+    """``subset(every third point).against(image.blurred(s))`` scores like a scorer built from every third point
+    and the Gaussian-blurred gradients, without copying the frame's planes for each channel."""
     camera = CAMERAS["plumb_bob"]
     rng = np.random.default_rng(5)
     pts = random_points(900, seed=6)
@@ -157,7 +157,7 @@ def test_gom_scorer_against_blurred_planes_shares_the_lidar_side() -> None:
     igx, igy = rng.standard_normal(shape), rng.standard_normal(shape)
     image = GradientPlanes.of(igx, igy, camera)
     scorer = GomScorer(pts, lgx, lgy, lmag, image, camera)
-    twin = scorer.against(image.blurred(3.0), stride=3)
+    twin = scorer.subset(np.arange(0, 900, 3)).against(image.blurred(3.0))
     blur = [cv2.GaussianBlur(g, (0, 0), 3.0) for g in (igx, igy)]
     fresh = GomScorer(pts[::3], lgx[::3], lgy[::3], lmag[::3], GradientPlanes.of(*blur, camera), camera)
     poses = np.stack([np.eye(4), from_xyz_rpy(0.05, 0.0, -0.1, 1, 2, -3)])

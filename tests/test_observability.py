@@ -76,18 +76,19 @@ class TwoFrameProblem:
     def free_parameters(self) -> NDArray[np.bool_]:
         return np.ones(6, dtype=bool)
 
-    def evaluate(self, x: NDArray[np.floating], frames: list[int] | None = None) -> NDArray[np.float64]:
+    def evaluate(self, x: NDArray[np.floating], view: list[int] | None = None) -> NDArray[np.float64]:
+        """The mean of the frames' quadratic scores; ``view``: of those frames only."""
         d2 = (np.atleast_2d(x) - self.x_star) ** 2
-        chosen = range(len(self.k)) if frames is None else frames
+        chosen = range(len(self.k)) if view is None else view
         return np.asarray(np.mean([0.8 - (d2 * self.k[f]).sum(axis=1) for f in chosen], axis=0))
 
 
-def test_profile_on_a_subset_of_frames_measures_those_frames() -> None:
-    """Frame 0 fixes x weakly (ratio 0.45), frame 1 firmly (ratio 9): the profile of frame 0 alone, of frame 1
-    alone and of both are each their own objective's."""
+def test_profile_on_a_view_measures_that_view() -> None:
+    """Frame 0 fixes x weakly (ratio 0.45), frame 1 firmly (ratio 9): the profile on a view of frame 0 alone, of
+    frame 1 alone and of both are each their own objective's."""
     problem = TwoFrameProblem([[1e-3, 2e-3, 4e-3, 0.01, 0.03, 0.2], [1e-3, 2e-3, 4e-3, 0.2, 0.03, 0.01]])
-    alone_0 = translation_profile(problem, problem.x_star, 0.15, 0.5, frames=[0])  # type: ignore[arg-type]
-    alone_1 = translation_profile(problem, problem.x_star, 0.15, 0.5, frames=[1])  # type: ignore[arg-type]
+    alone_0 = translation_profile(problem, problem.x_star, 0.15, 0.5, view=[0])  # type: ignore[arg-type]
+    alone_1 = translation_profile(problem, problem.x_star, 0.15, 0.5, view=[1])  # type: ignore[arg-type]
     both = translation_profile(problem, problem.x_star, 0.15, 0.5)  # type: ignore[arg-type]
     np.testing.assert_allclose(alone_0, [0.45, 1.35, 9.0], rtol=1e-3)
     np.testing.assert_allclose(alone_1, [9.0, 1.35, 0.45], rtol=1e-3)

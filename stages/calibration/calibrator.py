@@ -360,7 +360,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     profile = np.full(3, np.nan)
     if not hold and cfg.profile_translation_m > 0:
         profile = translation_profile(problem, x_best, cfg.profile_translation_m, cfg.profile_rotation_deg,
-                                      problem.swarm_frames(cfg.seed))
+                                      problem.search_view(cfg.seed))
     runtime = time.perf_counter() - start
     final_scores, counts = problem.frame_scores(x_best[None])
     if int(counts.sum()) < cfg.min_points:

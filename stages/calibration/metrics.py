@@ -235,18 +235,13 @@ class GomScorer:
         self.R_gradients = None if R_camera_lidar_gradients is None else np.asarray(
             R_camera_lidar_gradients, dtype=np.float64).reshape(3, 3)
 
-    def against(self, image: GradientPlanes, stride: int = 1) -> GomScorer:
-        """This scorer's lidar gradients, on every ``stride``-th point, against other gradient planes of
-        the same camera (e.g. ``image.blurred(...)`` for a wider basin)."""
+    def against(self, image: GradientPlanes) -> GomScorer:
+        """This scorer's lidar gradients against other gradient planes of the same camera (e.g.
+        ``image.blurred(...)`` for a wider basin)."""
         if image.planes.shape != self.image.planes.shape:
             raise ProcessingError(f"gradient planes {image.planes.shape} do not match {self.image.planes.shape}")
         twin = copy.copy(self)
         twin.image = image
-        if stride > 1:
-            twin.points = np.ascontiguousarray(self.points[::stride])
-            twin.c2 = np.ascontiguousarray(self.c2[::stride])
-            twin.s2 = np.ascontiguousarray(self.s2[::stride])
-            twin.magnitude = np.ascontiguousarray(self.magnitude[::stride])
         return twin
 
     def subset(self, index: NDArray[np.int64]) -> GomScorer:

@@ -10,13 +10,12 @@ firm by this measure).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from functools import partial
 
 import numpy as np
 from numpy.typing import NDArray
 
-from fleetcal.stages.calibration.problem import CalibrationProblem, evaluate_embedded
+from fleetcal.stages.calibration.problem import CalibrationProblem, ScoringView, evaluate_embedded
 from fleetcal.stages.calibration.pso import pattern_search
 
 AXES = ("x", "y", "z")
@@ -28,11 +27,11 @@ _REFIT_MIN_STEP_FRACTION = 0.05  # down to 0.0125 deg / 1 mm
 
 
 def profile_drop(problem: CalibrationProblem, x_best: NDArray[np.float64], best_score: float, index: int,
-                 step: float, frames: Sequence[int] | None = None) -> float:
+                 step: float, view: ScoringView | None = None) -> float:
     """Score lost when parameter ``index`` of the estimate ``x_best`` moves ``step`` (degrees or metres)
     either way and every other free parameter is re-fitted by a pattern search from the estimate: the
     smaller of the two losses (0 or below: that far along, the objective does not fix the parameter).
-    ``frames``: the objective over those frames only (``best_score`` then is theirs); None: all."""
+    ``view``: the objective on that view's points (``best_score`` then is its); None: every point."""
     x_best = np.asarray(x_best, dtype=np.float64)
     dim = x_best.size
     steps = np.array([_REFIT_STEP_DEG] * 3 + [_REFIT_STEP_M] * 3 + [_REFIT_STEP_FOCAL] * (dim - 6))
@@ -45,7 +44,7 @@ def profile_drop(problem: CalibrationProblem, x_best: NDArray[np.float64], best_
     for sign in (-1.0, 1.0):
         x0 = x_best.copy()
         x0[index] += sign * step
-        objective = partial(evaluate_embedded, problem, base=x0, free=free, frames=frames)
+        objective = partial(evaluate_embedded, problem, base=x0, free=free, view=view)
         fit = pattern_search(objective, x0[free], steps[free], lower[free], upper[free],
                              min_step_fraction=_REFIT_MIN_STEP_FRACTION)
         drops.append(best_score - fit.best_score)
@@ -53,22 +52,22 @@ def profile_drop(problem: CalibrationProblem, x_best: NDArray[np.float64], best_
 
 
 def translation_profile(problem: CalibrationProblem, x_best: NDArray[np.float64], step_m: float,
-                        step_deg: float, frames: Sequence[int] | None = None) -> NDArray[np.float64]:
+                        step_deg: float, view: ScoringView | None = None) -> NDArray[np.float64]:
     """How well the objective fixes each translation component of the estimate, against its rotation:
     the profile loss (``profile_drop``) of a ``step_m`` move along each axis of the (reference) camera,
     divided by the median profile loss of a ``step_deg`` turn about the camera's three axes. A ratio of
-    the objective's own curvatures, it is measured on ``frames`` only where given (None: all): a spread
-    subset of a long log tells the same at a bounded cost.
+    the objective's own curvatures, it is measured on ``view`` where given (None: every point): the swarm's
+    thinned view of a long log tells the same at a bounded cost.
 
     Returns:
         (3,) ratios for the camera's x, y, z: below 1, moving ``step_m`` there costs less than a typical
         ``step_deg`` turn; NaN where the turns cost nothing.
     """
-    best_score = float(problem.evaluate(np.asarray(x_best, dtype=np.float64)[None], frames)[0])
-    turns = float(np.median([profile_drop(problem, x_best, best_score, i, step_deg, frames) for i in range(3)]))
+    best_score = float(problem.evaluate(np.asarray(x_best, dtype=np.float64)[None], view)[0])
+    turns = float(np.median([profile_drop(problem, x_best, best_score, i, step_deg, view) for i in range(3)]))
     if not turns > 0:
         return np.full(3, np.nan)
-    return np.array([profile_drop(problem, x_best, best_score, 3 + i, step_m, frames) / turns for i in range(3)])
+    return np.array([profile_drop(problem, x_best, best_score, 3 + i, step_m, view) / turns for i in range(3)])
 
 
 def weak_axes(profile: NDArray[np.float64], ratio: float) -> list[str]:

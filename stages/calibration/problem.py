@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from functools import partial
 from typing import Protocol
 
@@ -68,10 +69,10 @@ def embed(z: NDArray[np.floating], base: NDArray[np.float64], free: NDArray[np.b
 
 
 def evaluate_embedded(problem: CalibrationProblem, z: NDArray[np.floating], base: NDArray[np.float64],
-                      free: NDArray[np.bool_], frames: Sequence[int] | None = None) -> NDArray[np.float64]:
-    """``problem.evaluate`` of the free parameters z (P, F), the others at ``base`` (``embed``); ``frames``: of
-    those frames only (None: all). Picklable with ``functools.partial``, unlike a closure."""
-    return problem.evaluate(embed(z, base, free), frames)
+                      free: NDArray[np.bool_], view: ScoringView | None = None) -> NDArray[np.float64]:
+    """``problem.evaluate`` of the free parameters z (P, F), the others at ``base`` (``embed``), on ``view``
+    (None: every point). Picklable with ``functools.partial``, unlike a closure."""
+    return problem.evaluate(embed(z, base, free), view)
 
 
 def _view_cull(points_cam: NDArray[np.float64], camera: CameraModel, margin_rad: float,
@@ -137,6 +138,58 @@ def swarm_frame_subset(n_frames: int, limit: int, seed: int) -> list[int] | None
     return list(range(seed % step, n_frames, step))
 
 
+@dataclass
+class ScoringView:
+    """What a pose is scored on: some of the problem's frames (``frames``, their indices) and for each its
+    scorers (feature channels, then their ring-smoothed twins), the same scored in one pass (``GomChannels``,
+    or None) and how many of them are feature channels; ``per_point``: how many of a frame's points one scored
+    point stands for (the overlap limits count points, so a strided view's counts are scaled by it)."""
+
+    frames: list[int]
+    scorers: list[list[Scorer]]
+    together: list[GomChannels | None]
+    channels: list[int]
+    per_point: int = 1
+
+    def of_frames(self, chosen: Sequence[int]) -> ScoringView:
+        """This view on the frames at positions ``chosen`` of its own."""
+        return ScoringView([self.frames[k] for k in chosen], [self.scorers[k] for k in chosen],
+                           [self.together[k] for k in chosen], [self.channels[k] for k in chosen], self.per_point)
+
+    def strided(self, stride: int) -> ScoringView:
+        """Every ``stride``-th point of each frame's GOM scorers (points are in image order, so a stride thins
+        a frame evenly), one by one; other metrics' scorers whole. ``self`` where stride is 1."""
+        if stride <= 1:
+            return self
+        scorers = [[s.subset(np.arange(0, s.points.shape[0], stride)) if isinstance(s, GomScorer) else s
+                    for s in frame] for frame in self.scorers]
+        return ScoringView(self.frames, scorers, [None] * len(scorers), self.channels, self.per_point * stride)
+
+    def against(self, planes_of: Callable[[GradientPlanes], GradientPlanes]) -> ScoringView:
+        """The GOM feature channels of every frame against other gradient planes made once per frame from its
+        own (``planes_of``: e.g. blurred for exploration); ring-smoothed twins sit it out, other metrics too."""
+        scorers = [gom_twins(frame[:n], planes_of) for frame, n in zip(self.scorers, self.channels, strict=True)]
+        return ScoringView(self.frames, scorers, [None] * len(scorers), [len(frame) for frame in scorers],
+                           self.per_point)
+
+    def batches(self, k: int, T: NDArray[np.float64], focal: NDArray[np.floating] | None) -> list[MetricBatch]:
+        """Frame k's metric batches, a scorer's each, for its extrinsics ``T`` (P, 4, 4)."""
+        together = self.together[k]
+        if together is not None:
+            return together.score(T, focal)
+        return [scorer.score(T, focal) for scorer in self.scorers[k]]
+
+
+def gom_twins(scorers: list[Scorer], planes_of: Callable[[GradientPlanes], GradientPlanes]) -> list[Scorer]:
+    """Twins of a frame's GOM scorers against other gradient planes made once from the frame's (``planes_of``:
+    e.g. smoothed across the rings, or blurred for exploration) and shared by the channels."""
+    gom = [s for s in scorers if isinstance(s, GomScorer)]
+    if not gom:
+        return []
+    planes = planes_of(gom[0].image)
+    return [s.against(planes) for s in gom]
+
+
 class CalibrationProblem:
     """Prepared frames and the batched objective ``evaluate(x (P, D)) -> (P,)`` of a calibration."""
 
@@ -159,30 +212,25 @@ class CalibrationProblem:
         frames = [fold_rectification(f) for f in frames]
         self.frames = frames
         self.T_camera_camera0 = [np.asarray(f.T_camera_camera0, dtype=np.float64) for f in frames]
-        self.scorers: list[list[Scorer]] = []  # per frame: one per feature channel, then any ring-smoothed twins
         self.points_used: list[int] = []
         self.ring_smoothing_px: list[float] = []  # per frame, 0: none
         self.ring_spacing_rad = [ring_spacing_rad(f.points_xyz) for f in frames]  # per frame, NaN: untold
         self.ring_slant_deg = [ring_slant_deg(f.camera, T_c_c0 @ T0)  # per frame at the initial guess, NaN: untold
                                for f, T_c_c0 in zip(frames, self.T_camera_camera0, strict=True)]
-        self.together: list[GomChannels | None] = []  # per frame: its GOM scorers in one pass, or None
-        channels: list[list[Scorer]] = []
+        self.selections: list[NDArray[np.bool_] | None] = []  # per frame: which points each GOM channel keeps
+        self.full = ScoringView(list(range(len(frames))), [], [], [])
         for f, T_c_c0, ring in zip(frames, self.T_camera_camera0, self.ring_spacing_rad, strict=True):
             scorers, n, selections = self._prepare(f, T_c_c0 @ T0)
-            channels.append(scorers)
             sigma_px, across = self._ring_smoothing(f, T_c_c0 @ T0, ring)
             smoothed = partial(GradientPlanes.blurred_along, direction_uv=across, sigma_px=sigma_px)
-            twins = self._gom_twins(scorers, smoothed) if sigma_px > 0 else []
-            self.scorers.append(scorers + twins)
-            self.together.append(_together(scorers, selections, twins))
+            twins = gom_twins(scorers, smoothed) if sigma_px > 0 else []
+            self.full.scorers.append(scorers + twins)
+            self.full.channels.append(len(scorers))
+            self.full.together.append(_together(scorers, selections, twins))
+            self.selections.append(selections)
             self.points_used.append(n)
             self.ring_smoothing_px.append(sigma_px)
-        self.explore_scorers: list[list[Scorer]] = []
-        if config.explores:  # exploration blurs the channels' own planes; the ring-smoothed twins sit it out
-            self.explore_scorers = [
-                self._gom_twins(scorers, partial(GradientPlanes.blurred, sigma_px=config.explore_blur_factor
-                                                 * default_blur_sigma_px(f.camera.width)), config.explore_stride)
-                for f, scorers in zip(frames, channels, strict=True)]
+        self._explore_views: dict[tuple[int, ...], ScoringView] = {}  # by the frames they score
         self.evaluations = 0
         self.on_iteration: Callable[[int, float], None] | None = None  # called after each swarm iteration
         centre = np.zeros((1, self.dim)) + 0.5 * (self.lower + self.upper)
@@ -208,18 +256,6 @@ class CalibrationProblem:
         if cfg.ring_smoothing == "auto" and sigma_px <= default_blur_sigma_px(f.camera.width):
             return none
         return sigma_px, across
-
-    @staticmethod
-    def _gom_twins(scorers: list[Scorer], planes_of: Callable[[GradientPlanes], GradientPlanes],
-                   stride: int = 1) -> list[Scorer]:
-        """Twins of a frame's GOM scorers, on every ``stride``-th point, against other gradient planes made
-        once from the frame's (``planes_of``: e.g. smoothed across the rings, or blurred for exploration)
-        and shared by the channels."""
-        gom = [s for s in scorers if isinstance(s, GomScorer)]
-        if not gom:
-            return []
-        planes = planes_of(gom[0].image)
-        return [s.against(planes, stride) for s in gom]
 
     def _prepare(self, f: CalibrationFrame, T_cam_lidar: Mat4) -> tuple[list[Scorer], int, NDArray[np.bool_] | None]:
         """Scorers of one frame (one per feature channel; Levinson: one), its largest point count and, for
@@ -324,46 +360,70 @@ class CalibrationProblem:
         rv = Rotation.from_matrix(T_delta[:3, :3]).as_rotvec(degrees=True)
         return np.concatenate([rv, T_delta[:3, 3]])
 
-    def _batches(self, x: NDArray[np.floating], explore: bool = False,
-                 frames: Sequence[int] | None = None) -> list[list[MetricBatch]]:
-        """Metric batches per frame (``frames``: of those only; None: all) and feature channel for parameters
-        (P, D) (``explore``: against the blurred image gradients)."""
+    @property
+    def scorers(self) -> list[list[Scorer]]:
+        """Per frame, the scorers of every point (``full``): feature channels, then ring-smoothed twins."""
+        return self.full.scorers
+
+    @property
+    def together(self) -> list[GomChannels | None]:
+        """Per frame, its scorers in one pass (``full``), or None."""
+        return self.full.together
+
+    def points_moved(self) -> None:
+        """Rebuild what is derived from the scorers' points after they were replaced (``timing``): the frames'
+        one-pass scorers and the exploration's views."""
+        for k, scorers in enumerate(self.full.scorers):
+            n = self.full.channels[k]
+            self.full.together[k] = _together(scorers[:n], self.selections[k], scorers[n:])
+        self._explore_views.clear()
+
+    def search_view(self, seed: int) -> ScoringView:
+        """What a seeded run's swarm scores: the frames ``swarm_frame_subset`` picks for the seed."""
+        subset = swarm_frame_subset(len(self.frames), self.config.swarm_frames, seed)
+        return self.full if subset is None else self.full.of_frames(subset)
+
+    def explore_view(self, seed: int) -> ScoringView | None:
+        """The search view's feature channels, on every ``explore_stride``-th point, against the image gradients
+        blurred for exploration (``SolverConfig.explore``); None where the swarm does not explore."""
+        if not self.config.explores:
+            return None
+        search = self.search_view(seed)
+        key = tuple(search.frames)
+        if key not in self._explore_views:
+            factor = self.config.explore_blur_factor  # times the blur of the image's width
+            blurred = search.against(
+                lambda planes: planes.blurred(sigma_px=factor * default_blur_sigma_px(planes.planes.shape[1])))
+            self._explore_views[key] = blurred.strided(self.config.explore_stride)
+        return self._explore_views[key]
+
+    def _batches(self, x: NDArray[np.floating], view: ScoringView) -> list[list[MetricBatch]]:
+        """Metric batches per frame and scorer of ``view`` for parameters (P, D)."""
         x = np.atleast_2d(np.asarray(x, dtype=np.float64))
         T_c0 = delta_transforms(x) @ self.T_init
         focal = x[:, 6] if x.shape[1] > 6 else None
         self.evaluations += x.shape[0]
-        scorers = self.explore_scorers if explore else self.scorers
-        chosen = range(len(scorers)) if frames is None else frames
-        together: list[GomChannels | None] = [None] * len(scorers) if explore else self.together
-        return [self._frame_batches(scorers[k], together[k], self.T_camera_camera0[k] @ T_c0, focal) for k in chosen]
-
-    @staticmethod
-    def _frame_batches(scorers: list[Scorer], together: GomChannels | None, T: NDArray[np.float64],
-                       focal: NDArray[np.floating] | None) -> list[MetricBatch]:
-        """One frame's metric batches, a scorer's each, for its extrinsics ``T`` (P, 4, 4)."""
-        if together is not None:
-            return together.score(T, focal)
-        return [scorer.score(T, focal) for scorer in scorers]
+        return [view.batches(k, self.T_camera_camera0[k] @ T_c0, focal) for k in range(len(view.scorers))]
 
     def _channel_counts(self, x: NDArray[np.floating]) -> list[NDArray[np.int64]]:
         """Projected points per frame and channel of the first candidate of x."""
-        return [np.array([b.counts[0] for b in frame], dtype=np.int64) for frame in self._batches(x)]
+        return [np.array([b.counts[0] for b in frame], dtype=np.int64) for frame in self._batches(x, self.full)]
 
-    def frame_scores(self, x: NDArray[np.floating], explore: bool = False,
-                     frames: Sequence[int] | None = None) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    def frame_scores(self, x: NDArray[np.floating],
+                     view: ScoringView | None = None) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
         """Per-frame scores (mean over the frame's scorers: feature channels and their ring-smoothed twins;
         a scorer projecting fewer points than its minimum scores 0) and projected-point counts (largest
-        over scorers), each (P, F), of parameters (P, D); ``frames``: of those frames only (None: all)."""
-        batches = self._batches(x, explore, frames)
-        index = list(range(len(batches))) if frames is None else list(frames)
-        per_point = self.config.explore_stride if explore else 1  # points one explore point stands for
+        over scorers), each (P, F), of parameters (P, D) on ``view`` (None: every point, ``full``)."""
+        view = self.full if view is None else view
+        batches = self._batches(x, view)
         n = np.atleast_2d(np.asarray(x)).shape[0]
         scores = np.zeros((n, len(batches)))
         counts = np.zeros((n, len(batches)), dtype=np.int64)
         for k, frame in enumerate(batches):
             for c, batch in enumerate(frame):
-                seen = batch.counts * per_point
-                scores[:, k] += np.where(seen >= self.min_counts[index[k]][c], batch.scores, 0.0) / len(frame)
+                seen = batch.counts * view.per_point
+                limit = self.min_counts[view.frames[k]][c]
+                scores[:, k] += np.where(seen >= limit, batch.scores, 0.0) / len(frame)
                 counts[:, k] = np.maximum(counts[:, k], seen)
         return scores, counts
 
@@ -373,7 +433,7 @@ class CalibrationProblem:
         each described as ``"frame 2 (/cam): 5908 points, limit 5907"``: there the limit, not the
         metric, held the optimum."""
         limited = []
-        for k, frame in enumerate(self._batches(np.asarray(x)[None])):
+        for k, frame in enumerate(self._batches(np.asarray(x)[None], self.full)):
             for c, batch in enumerate(frame):
                 seen, limit = int(batch.counts[0]), int(self.min_counts[k][c])
                 if limit <= seen <= (1.0 + fraction) * limit:
@@ -382,17 +442,9 @@ class CalibrationProblem:
                     break
         return limited
 
-    def evaluate(self, x: NDArray[np.floating], frames: Sequence[int] | None = None) -> NDArray[np.float64]:
-        """Mean score over frames (``frames``: of those only) for parameters (P, D) -> (P,)."""
-        return np.asarray(self.frame_scores(x, frames=frames)[0].mean(axis=1))
-
-    def evaluate_explore(self, x: NDArray[np.floating], frames: Sequence[int] | None = None) -> NDArray[np.float64]:
-        """``evaluate`` against the blurred image gradients of the exploration phase."""
-        return np.asarray(self.frame_scores(x, explore=True, frames=frames)[0].mean(axis=1))
-
-    def swarm_frames(self, seed: int) -> list[int] | None:
-        """The frames a seeded run's swarm scores (``swarm_frame_subset``)."""
-        return swarm_frame_subset(len(self.scorers), self.config.swarm_frames, seed)
+    def evaluate(self, x: NDArray[np.floating], view: ScoringView | None = None) -> NDArray[np.float64]:
+        """Mean score over frames for parameters (P, D) -> (P,), on ``view`` (None: every point)."""
+        return np.asarray(self.frame_scores(x, view)[0].mean(axis=1))
 
     def free_parameters(self, hold_translation: bool = False) -> NDArray[np.bool_]:
         """(D,) which parameters the optimiser searches: those with a box of non-zero width, less the
@@ -418,19 +470,20 @@ class CalibrationProblem:
             return dataclasses.replace(result, best_x=full(result.best_x)[0])
 
         lower, upper = self.lower[free], self.upper[free]
-        subset = self.swarm_frames(seed)
-        swarm = particle_swarm(on_free(partial(self.evaluate, frames=subset)), lower, upper,
+        search, explore = self.search_view(seed), self.explore_view(seed)
+        swarm = particle_swarm(on_free(partial(self.evaluate, view=search)), lower, upper,
                                n_particles=cfg.n_particles,
                                max_iterations=cfg.max_iterations, stall_iterations=cfg.stall_iterations,
                                min_iterations=cfg.min_iterations, score_tolerance=cfg.swarm_tolerance,
                                seed=seed, x_initial=centre[free],
-                               explore_objective=(on_free(partial(self.evaluate_explore, frames=subset))
-                                                  if self.explore_scorers else None),
+                               explore_objective=(on_free(partial(self.evaluate, view=explore))
+                                                  if explore is not None else None),
                                explore_iterations=cfg.explore_phase_iterations, on_iteration=self.on_iteration)
         if not cfg.polish:
             return in_full(swarm), None
+        known = swarm.best_score if search is self.full else None  # the swarm's score is the polish's
         polish = pattern_search(on_free(self.evaluate), swarm.best_x, 0.1 * (upper - lower), lower, upper,
-                                min_step_fraction=0.005, score_at_x0=None if subset else swarm.best_score)
+                                min_step_fraction=0.005, score_at_x0=known)
         return in_full(swarm), in_full(polish)
 
 

@@ -104,8 +104,9 @@ class TimeShiftField:
         known = [tw for tw in self.twists if tw is not None]
         # the motion most frames share: what a search at the stamps' timing absorbs into the extrinsic
         self.shared_twist = np.median(known, axis=0) if known else np.zeros(6)
-        # the scorers (per frame, per channel) and the exploration's twins, with their unshifted points
-        self.groups = [problem.scorers, problem.explore_scorers]
+        # the scorers (per frame, per channel and twin), with their unshifted points; the views the swarm
+        # scores are rebuilt from them (``CalibrationProblem.points_moved``)
+        self.groups = [problem.scorers]
         self.base_points = [[[s.points for s in scorers] for scorers in group] for group in self.groups]
 
     @property
@@ -150,6 +151,7 @@ class TimeShiftField:
                 for j, p in enumerate(points):
                     rest = readout * (group_fractions[k][j] - mean_row)
                     scorers[j] = _with_points(scorers[j], p if tw is None else self._moved(p, tw, m, rest))
+        self.problem.points_moved()
 
     def mean_shift_s(self, shift: TimeShift, fractions: Fractions) -> float:
         """The mean of the points' time shifts ``tau`` over the frames, seconds."""
