@@ -143,7 +143,8 @@ class CalibrationConfig:
             guess's) or ``auto`` (default): estimated, but held where the seeded 6-DoF runs do not confirm
             one another and the box is within 5 deg / 0.5 m (the initial guess is trusted); evidence in
             ``stages.calibration.config.SolverConfig``.
-        repeats: seeded optimiser runs; their spread is the reported uncertainty.
+        repeats: seeded optimiser runs (up to three more while no run confirms the best); their spread is
+            the reported uncertainty.
         estimate_focal: also estimate a common scale of fx and fy.
         motion_compensation: move lidar points to the camera stamp with the log's /tf odometry.
         point_times: with ``motion_compensation``, a scan with a per-point time field (all within 0.5 s of
@@ -173,7 +174,7 @@ class CalibrationConfig:
     search_deg: float = 5.0
     search_m: float = 0.5
     translation: Literal["auto", "estimate", "hold"] = "auto"
-    repeats: int = 3
+    repeats: int = 2
     estimate_focal: bool = False
     motion_compensation: bool = True
     point_times: bool = True

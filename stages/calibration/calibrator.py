@@ -48,7 +48,14 @@ from fleetcal.stages.calibration.timing import (
     estimate_timing,
     extrinsic_deviation,
 )
-from fleetcal.stages.calibration.uncertainty import axis_deviations, ring_alias_optima, sampling_floor
+from fleetcal.stages.calibration.uncertainty import (
+    BANDS_PER_FRAME,
+    axis_deviations,
+    band_scores,
+    ring_alias_optima,
+    sampling_floor,
+    scores_alike,
+)
 
 Verdict = Literal["ok", "recalibrated", "suspect"]
 
@@ -268,13 +275,25 @@ def _agreeing(runs: list[_Run], best: int, cfg: SolverConfig) -> int:
 def _seeded_runs(problem: CalibrationProblem, cfg: SolverConfig, hold_translation: bool,
                  clock: _SearchClock) -> tuple[list[_Run], int]:
     """``repeats`` seeded runs and the index of the best, plus up to ``confirm_repeats`` more while no run
-    confirms it (they only confirm: the best stays the best of the first ``repeats``)."""
+    confirms it. A further run replaces the best only where it scores clearly higher (``_clearly_better``):
+    one that scores as well confirms nothing and does not move the estimate."""
     runs = [_best_of(problem, cfg.seed + r, hold_translation, clock) for r in range(cfg.repeats)]
     best = int(np.argmax([run.score for run in runs]))
     while cfg.repeats > 1 and len(runs) < cfg.repeats + cfg.confirm_repeats and _agreeing(runs, best, cfg) == 0:
         clock.runs += 1
         runs.append(_best_of(problem, cfg.seed + len(runs), hold_translation, clock))
+        if _clearly_better(problem, runs[-1], runs[best]):
+            best = len(runs) - 1
     return runs, best
+
+
+def _clearly_better(problem: CalibrationProblem, run: _Run, than: _Run) -> bool:
+    """Whether ``run`` scores higher than ``than`` by more than the scene's own noise (the image-band test,
+    ``uncertainty.scores_alike``)."""
+    if run.score <= than.score:
+        return False
+    scores = band_scores(problem, np.vstack([run.x, than.x]), BANDS_PER_FRAME)
+    return not scores_alike(scores[0] - scores[1])
 
 
 def resolve_auto_rules(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
@@ -388,7 +407,8 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     ring_deg, slant_deg = (_finite_median(problem.ring_spacing_rad, np.degrees),
                            _finite_median(problem.ring_slant_deg))
     range_m, off_axis = problem.typical_range_and_off_axis()
-    aliases = (ring_alias_optima(problem, x_best, problem.free_parameters(hold), ring_deg, range_m)
+    aliases = (ring_alias_optima(problem, x_best, problem.free_parameters(hold), ring_deg, range_m,
+                                 problem.search_view(cfg.seed))
                if cfg.metric == "gom" and ring_deg > cfg.sparse_rings_above_deg else [])  # GOM: image bands
     deviations = axis_deviations(problem, x_best, [run.x for i, run in enumerate(runs) if i != best_index],
                                  np.hypot(sampling_floor(ring_deg, problem.pixel_deg(), range_m, off_axis),

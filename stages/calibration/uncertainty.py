@@ -47,7 +47,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from fleetcal.stages.calibration.metrics import GomScorer
-from fleetcal.stages.calibration.problem import CalibrationProblem, embed, evaluate_embedded
+from fleetcal.stages.calibration.problem import CalibrationProblem, ScoringView, embed, evaluate_embedded
 from fleetcal.stages.calibration.pso import pattern_search
 
 BANDS_PER_FRAME = 8
@@ -124,11 +124,13 @@ def sampling_floor(ring_spacing_deg: float, pixel_deg: float, range_m: float,
 
 
 def ring_alias_optima(problem: CalibrationProblem, x_best: NDArray[np.float64], free: NDArray[np.bool_],
-                      ring_spacing_deg: float, range_m: float) -> list[NDArray[np.float64]]:
+                      ring_spacing_deg: float, range_m: float,
+                      view: ScoringView | None = None) -> list[NDArray[np.float64]]:
     """Local optima near the estimate x_best (D,) moved ``ALIAS_RINGS`` ring spacings (``ring_spacing_deg``
     at ``range_m``) either way along the lidar's axis, each polished over the ``free`` parameters by a pattern
-    search. Moves that leave the search box are skipped; none where the translation is held or the ring
-    spacing or range is unknown."""
+    search on ``view`` (None: every point; a seeded run's swarm frames bound the cost on a long log). Moves
+    that leave the search box are skipped; none where the translation is held or the ring spacing or range is
+    unknown."""
     spacing_m = float(np.radians(ring_spacing_deg) * range_m)
     if not np.any(free[3:6]) or not np.isfinite(spacing_m) or spacing_m <= 0:
         return []
@@ -144,7 +146,7 @@ def ring_alias_optima(problem: CalibrationProblem, x_best: NDArray[np.float64], 
             x0[:6] = problem.x_of(T_moved)
             if np.any(x0[free] < lower) or np.any(x0[free] > upper):
                 continue
-            fit = pattern_search(partial(evaluate_embedded, problem, base=x0, free=free), x0[free],
+            fit = pattern_search(partial(evaluate_embedded, problem, base=x0, free=free, view=view), x0[free],
                                  _ALIAS_POLISH_STEPS[: x0.size][free], lower, upper, min_step_fraction=0.05)
             optima.append(embed(fit.best_x, x0, free)[0])
     return optima
