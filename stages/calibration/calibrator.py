@@ -58,6 +58,7 @@ from fleetcal.stages.calibration.uncertainty import (
 )
 
 Verdict = Literal["ok", "recalibrated", "suspect"]
+_MORE_EVIDENCE = "use more frames (--frames) or a log with more structure near the camera"  # what a user can do
 
 
 @dataclass
@@ -419,14 +420,16 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     edge = box_edge(x_best, problem.lower, problem.upper, cfg.box_edge_fraction, problem.free_parameters(hold))
     on_limit = problem.overlap_limited(x_best, cfg.box_edge_fraction) if cfg.min_overlap_fraction > 0 else []
     if cfg.metric == "gom" and score < cfg.gom_suspect_below:
-        reason = f"GOM {score:.3f} is below {cfg.gom_suspect_below}"
+        reason = (f"GOM {score:.3f} is below {cfg.gom_suspect_below}: the lidar's edges and the image's hardly line up "
+                  "anywhere in the search box; check that the topics see the same scene, the camera's intrinsics "
+                  "and the initial guess")
     elif flat:
-        reason = "flat optimum"
+        reason = ("flat optimum: turning the estimate 1 deg barely changes the score; " + _MORE_EVIDENCE)
     elif cfg.metric == "gom" and slanted_sparse_rings(ring_deg, slant_deg, cfg):  # measured on GOM only
-        reason = (f"the lidar's rings lie {ring_deg:.2f} deg apart and cross the image slanted {slant_deg:.0f} deg: "
-                  "sparse rings rolled this far to the camera have come out 0.2-0.6 deg off with 32 beams and 1-7 deg "
-                  f"with 16 (simulated, rolled 35-45 deg; sphere neighbours by angle{', auto' if auto_angle else ''}): "
-                  "treat the estimate as unconfirmed")
+        reason = (f"the lidar's rings lie {ring_deg:.2f} deg apart and cross the image slanted {slant_deg:.0f} deg "
+                  f"(sphere neighbours by angle{', auto' if auto_angle else ''}): rings this sparse and slanted leave "
+                  "the rotation uncertain by tenths of a degree or more; check the estimate against a reference "
+                  "before using it")
     elif edge:
         reason = (f"the estimate is at the edge of the search box ({'; '.join(edge)}): the best pose may lie "
                   "outside it; check the initial guess or widen --search-deg / --search-m")
@@ -435,7 +438,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
                   "would have scored higher; check the initial guess")
     elif len(runs) > 1 and agreeing == 0:
         reason = (f"no other of the {len(runs)} seeded runs lands within {cfg.agree_rotation_deg} deg / "
-                  f"{cfg.agree_translation_m} m of the best")
+                  f"{cfg.agree_translation_m} m of the best: optima of similar score lie apart; " + _MORE_EVIDENCE)
     elif not cfg.wide_box and weak_move_m > cfg.weak_move_max_m:
         reason = (f"the translation moved {100 * weak_move_m:.0f} cm along camera axes the log fixes weakly "
                   f"({', '.join(weak)}); more than {100 * cfg.weak_move_max_m:.0f} cm from a trusted initial "
@@ -445,13 +448,12 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
                   "other run to confirm it: far optima lie in such a box; set calibration.repeats to 2 or more")
     elif turned_deg > cfg.agree_rotation_deg:
         reason = (f"the seeded runs disagree; with the translation held they agree on a rotation {turned_deg:.2f} deg "
-                  "from the best 6-DoF run's, so it is not only the translation they disagree on")
+                  "from the best 6-DoF run's, so it is not only the translation they disagree on; " + _MORE_EVIDENCE)
     elif uncertain:
         reason = (f"the estimate is uncertain beyond {cfg.agree_rotation_deg:g} deg / "
                   f"{100 * cfg.agree_translation_m:g} cm (2 sigma: {', '.join(uncertain)}; "
                   f"{deviations.alike_runs} other seeded run(s) and {deviations.alike_aliases} optima a few lidar "
-                  "rings away score as well): "
-                  "use more frames (--frames) or a log with more structure near the camera")
+                  "rings away score as well): " + _MORE_EVIDENCE)
     verdict: Verdict
     if reason:
         verdict = "suspect"
