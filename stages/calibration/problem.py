@@ -128,14 +128,19 @@ def ring_slant_deg(camera: CameraModel, T_camera_lidar: Mat4) -> float:
     return float(np.degrees(np.arctan2(abs(across[0]), abs(across[1]))))
 
 
-def swarm_frame_subset(n_frames: int, limit: int, seed: int) -> list[int] | None:
-    """The frames a seeded run's swarm scores: all (None) up to ``limit`` (0: no limit), else every s-th
-    frame from an offset that the seed turns (s = ceil(n_frames / limit)), so that the runs' swarms see
-    different frames of the log; the polish and every reported score use all frames."""
-    if limit <= 0 or n_frames <= limit:
+MIN_SWARM_FRAMES = 2  # a single frame's scene can leave a direction unfixed that a second one fixes (KITTI)
+
+
+def swarm_frame_subset(frame_points: Sequence[int], budget: int, seed: int) -> list[int] | None:
+    """The frames a seeded run's swarm scores: all (None) while their points (``frame_points``, per frame) add up
+    to at most ``budget`` (0: no limit), else every s-th frame from an offset that the seed turns (s = ceil(points /
+    budget), keeping at least ``MIN_SWARM_FRAMES``), so that a candidate costs about ``budget`` points and the runs'
+    swarms see different frames of the log; the polish and every reported score use all frames."""
+    total, n_frames = int(sum(frame_points)), len(frame_points)
+    if budget <= 0 or total <= budget:
         return None
-    step = -(-n_frames // limit)
-    return list(range(seed % step, n_frames, step))
+    step = min(-(-total // budget), max(n_frames // MIN_SWARM_FRAMES, 1))
+    return None if step == 1 else list(range(seed % step, n_frames, step))
 
 
 @dataclass
@@ -378,9 +383,16 @@ class CalibrationProblem:
             self.full.together[k] = _together(scorers[:n], self.selections[k], scorers[n:])
         self._explore_views.clear()
 
+    def points_scored(self) -> list[int]:
+        """Per frame, the points a pose projects over all its scorers (the union of its channels' where they
+        are scored in one pass)."""
+        return [t.points.shape[0] if t is not None else sum(s.points.shape[0] for s in frame)
+                for frame, t in zip(self.full.scorers, self.full.together, strict=True)]
+
     def search_view(self, seed: int) -> ScoringView:
-        """What a seeded run's swarm scores: the frames ``swarm_frame_subset`` picks for the seed."""
-        subset = swarm_frame_subset(len(self.frames), self.config.swarm_frames, seed)
+        """What a seeded run's swarm scores: the frames ``swarm_frame_subset`` picks for the seed, within
+        ``SolverConfig.swarm_points`` points."""
+        subset = swarm_frame_subset(self.points_scored(), self.config.swarm_points, seed)
         return self.full if subset is None else self.full.of_frames(subset)
 
     def explore_view(self, seed: int) -> ScoringView | None:
