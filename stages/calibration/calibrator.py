@@ -378,9 +378,10 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     if timing is not None:
         score, x_best = timing.score, timing.x
     profile = np.full(3, np.nan)
+    swarm_view = problem.search_view(cfg.seed)  # the first run's swarm frames bound the checks' cost on long logs
     if not hold and cfg.profile_translation_m > 0:
         profile = translation_profile(problem, x_best, cfg.profile_translation_m, cfg.profile_rotation_deg,
-                                      problem.search_view(cfg.seed))
+                                      swarm_view)
     runtime = time.perf_counter() - start
     final_scores, counts = problem.frame_scores(x_best[None])
     if int(counts.sum()) < cfg.min_points:
@@ -408,8 +409,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     ring_deg, slant_deg = (_finite_median(problem.ring_spacing_rad, np.degrees),
                            _finite_median(problem.ring_slant_deg))
     range_m, off_axis = problem.typical_range_and_off_axis()
-    aliases = (ring_alias_optima(problem, x_best, problem.free_parameters(hold), ring_deg, range_m,
-                                 problem.search_view(cfg.seed))
+    aliases = (ring_alias_optima(problem, x_best, problem.free_parameters(hold), ring_deg, range_m, swarm_view)
                if cfg.metric == "gom" and ring_deg > cfg.sparse_rings_above_deg else [])  # GOM: image bands
     deviations = axis_deviations(problem, x_best, [run.x for i, run in enumerate(runs) if i != best_index],
                                  np.hypot(sampling_floor(ring_deg, problem.pixel_deg(), range_m, off_axis),

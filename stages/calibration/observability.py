@@ -56,8 +56,8 @@ def translation_profile(problem: CalibrationProblem, x_best: NDArray[np.float64]
     """How well the objective fixes each translation component of the estimate, against its rotation:
     the profile loss (``profile_drop``) of a ``step_m`` move along each axis of the (reference) camera,
     divided by the median profile loss of a ``step_deg`` turn about the camera's three axes. A ratio of
-    the objective's own curvatures, it is measured on ``view`` where given (None: every point): the swarm's
-    thinned view of a long log tells the same at a bounded cost.
+    the objective's own curvatures, it is measured on ``view`` where given (None: every point): a seeded run's
+    swarm frames (``CalibrationProblem.search_view``) tell the same of a long log at a bounded cost.
 
     Returns:
         (3,) ratios for the camera's x, y, z: below 1, moving ``step_m`` there costs less than a typical
