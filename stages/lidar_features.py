@@ -14,7 +14,6 @@ from typing import Literal, get_args
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
-from scipy.stats import rankdata
 
 from fleetcal.pipeline.errors import InputError
 from fleetcal.pipeline.frames import LidarFrame
@@ -171,8 +170,9 @@ def equalize_rank(values: ArrayLike) -> NDArray[np.float32]:
     if n == 1:
         out[finite] = 0.5
         return out
-    ranks = rankdata(arr[finite], method="average")
-    out[finite] = ((ranks - 1.0) / (n - 1.0)).astype(np.float32)
+    _, distinct_of, counts = np.unique(arr[finite], return_inverse=True, return_counts=True)
+    below = np.cumsum(counts) - counts  # values smaller than each distinct value
+    out[finite] = ((below + (counts - 1) / 2.0) / (n - 1.0))[distinct_of.ravel()].astype(np.float32)
     return out
 
 
