@@ -615,3 +615,18 @@ def test_each_runs_swarm_scores_a_spread_subset_of_many_frames() -> None:
     assert swarm_frame_subset([90_000], 60_000, 1) is None  # a frame over the budget is still scored ...
     assert swarm_frame_subset([31_000, 29_000, 30_000], 60_000, 1) is None  # ... and at least two of them
     assert swarm_frame_subset([31_000] * 4, 60_000, 1) == [1, 3]
+
+
+def test_runs_polished_on_their_swarms_frames_end_with_a_polish_on_every_frame() -> None:
+    """With a point budget below the frames' points each run's swarm and polish score two of the four frames;
+    the chosen pose is then polished on all four, and the score reported is its score over all four."""
+    frames = [synthetic_frame(seed) for seed in range(4)]
+    T_true = true_T_camera_lidar()
+    cfg = SolverConfig(search_deg=2.0, search_m=0.2, n_particles=60, max_iterations=40, repeats=2, swarm_points=1)
+    problem = CalibrationProblem(frames, T_true, cfg)
+    assert problem.polished_on_subsets() and len(problem.search_view(0).frames) == 2
+    result = calibrate(frames, perturb(T_true, 1.5, 0.05, seed=4), cfg)
+    assert rotation_error_deg(result.T_camera_lidar, T_true) < 0.3
+    assert translation_error_m(result.T_camera_lidar, T_true) < 0.03
+    assert result.frame_scores.shape == (4,)
+    assert result.score == pytest.approx(float(np.mean(result.frame_scores)), rel=1e-9)

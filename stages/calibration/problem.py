@@ -468,35 +468,57 @@ class CalibrationProblem:
 
     def optimise(self, seed: int, hold_translation: bool = False) -> tuple[SwarmResult, SwarmResult | None]:
         """One seeded swarm (+ polish) run over the free parameters (``free_parameters``); the others stay
-        at the box's centre (the initial guess). Results are given in all D parameters."""
+        at the box's centre (the initial guess). Results are given in all D parameters. The swarm and the
+        polish score the seed's frames (``search_view``); where those are a subset of the frames, the
+        polish's ``best_score`` is its pose's score over every frame, and ``polish_everywhere`` refines
+        the chosen run's pose on every frame."""
         cfg = self.config
         free = self.free_parameters(hold_translation)
-        centre = 0.5 * (self.lower + self.upper)
-        full = partial(embed, base=centre, free=free)
-
-        def on_free(objective: Callable[[NDArray[np.floating]], NDArray[np.float64]]) -> Callable[
-                [NDArray[np.float64]], NDArray[np.float64]]:
-            return lambda z: objective(full(z))
-
-        def in_full(result: SwarmResult) -> SwarmResult:
-            return dataclasses.replace(result, best_x=full(result.best_x)[0])
-
+        embedded = self._embedding(free)
         lower, upper = self.lower[free], self.upper[free]
         search, explore = self.search_view(seed), self.explore_view(seed)
-        swarm = particle_swarm(on_free(partial(self.evaluate, view=search)), lower, upper,
+        swarm = particle_swarm(embedded(partial(self.evaluate, view=search)), lower, upper,
                                n_particles=cfg.n_particles,
                                max_iterations=cfg.max_iterations, stall_iterations=cfg.stall_iterations,
                                min_iterations=cfg.min_iterations, score_tolerance=cfg.swarm_tolerance,
-                               seed=seed, x_initial=centre[free],
-                               explore_objective=(on_free(partial(self.evaluate, view=explore))
+                               seed=seed, x_initial=self._centre()[free],
+                               explore_objective=(embedded(partial(self.evaluate, view=explore))
                                                   if explore is not None else None),
                                explore_iterations=cfg.explore_phase_iterations, on_iteration=self.on_iteration)
+        swarm = dataclasses.replace(swarm, best_x=self._in_full(swarm.best_x, free))
         if not cfg.polish:
-            return in_full(swarm), None
-        known = swarm.best_score if search is self.full else None  # the swarm's score is the polish's
-        polish = pattern_search(on_free(self.evaluate), swarm.best_x, 0.1 * (upper - lower), lower, upper,
-                                min_step_fraction=0.005, score_at_x0=known)
-        return in_full(swarm), in_full(polish)
+            return swarm, None
+        polish = self._polish(swarm.best_x, free, search, swarm.best_score)
+        if search is not self.full:
+            polish = dataclasses.replace(polish, best_score=float(self.evaluate(polish.best_x[None])[0]))
+        return swarm, polish
+
+    def polished_on_subsets(self) -> bool:
+        """Whether the seeded runs' swarms and polishes score a subset of the frames (``SolverConfig.swarm_points``)."""
+        return self.search_view(self.config.seed) is not self.full
+
+    def polish_everywhere(self, x: NDArray[np.floating], hold_translation: bool, score: float) -> SwarmResult:
+        """The polish (``pattern_search``) from parameters x (D,) over every frame; ``score``: x's score there."""
+        return self._polish(np.asarray(x, dtype=np.float64), self.free_parameters(hold_translation), self.full,
+                            score)
+
+    def _polish(self, x: NDArray[np.float64], free: NDArray[np.bool_], view: ScoringView, score: float) -> SwarmResult:
+        """Compass search over the free parameters from x (D,) on ``view`` (x scores ``score`` there), result in D."""
+        lower, upper = self.lower[free], self.upper[free]
+        result = pattern_search(self._embedding(free)(partial(self.evaluate, view=view)), x[free],
+                                0.1 * (upper - lower), lower, upper, min_step_fraction=0.005, score_at_x0=score)
+        return dataclasses.replace(result, best_x=self._in_full(result.best_x, free))
+
+    def _centre(self) -> NDArray[np.float64]:
+        return np.asarray(0.5 * (self.lower + self.upper))
+
+    def _embedding(self, free: NDArray[np.bool_]) -> Callable[[Callable[[NDArray[np.float64]], NDArray[np.float64]]],
+                                                               Callable[[NDArray[np.float64]], NDArray[np.float64]]]:
+        """Wraps an objective of (P, D) parameters into one of the free parameters (P, F), the others at the centre."""
+        return lambda objective: lambda z: objective(embed(z, base=self._centre(), free=free))
+
+    def _in_full(self, z: NDArray[np.float64], free: NDArray[np.bool_]) -> NDArray[np.float64]:
+        return np.asarray(embed(z, base=self._centre(), free=free)[0])
 
 
 def _together(channels: list[Scorer], selections: NDArray[np.bool_] | None, twins: list[Scorer]) -> GomChannels | None:
