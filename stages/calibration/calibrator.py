@@ -374,14 +374,14 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
             runs, best_index, hold = held_runs, held_best, True
     best_run = runs[best_index]
     score, x_best, iterations = best_run.score, best_run.x, best_run.iterations
-    if cfg.polish and problem.polished_on_subsets():  # the runs were polished on their swarms' frames
+    swarm_view = problem.search_view(cfg.seed)  # the first run's swarm frames bound the checks' cost on long logs
+    if cfg.polish and swarm_view is not problem.full:  # the runs were polished on their swarms' frames
         refined = problem.polish_everywhere(x_best, hold, score)
         score, x_best, iterations = refined.best_score, refined.best_x, iterations + refined.iterations
     timing = _estimate_timing(problem, clock_field, x_best, hold, cfg)
     if timing is not None:
         score, x_best = timing.score, timing.x
     profile = np.full(3, np.nan)
-    swarm_view = problem.search_view(cfg.seed)  # the first run's swarm frames bound the checks' cost on long logs
     if not hold and cfg.profile_translation_m > 0:
         profile = translation_profile(problem, x_best, cfg.profile_translation_m, cfg.profile_rotation_deg,
                                       swarm_view)

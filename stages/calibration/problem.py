@@ -474,18 +474,18 @@ class CalibrationProblem:
         the chosen run's pose on every frame."""
         cfg = self.config
         free = self.free_parameters(hold_translation)
-        embedded = self._embedding(free)
+        centre = 0.5 * (self.lower + self.upper)
         lower, upper = self.lower[free], self.upper[free]
         search, explore = self.search_view(seed), self.explore_view(seed)
-        swarm = particle_swarm(embedded(partial(self.evaluate, view=search)), lower, upper,
+        swarm = particle_swarm(partial(evaluate_embedded, self, base=centre, free=free, view=search), lower, upper,
                                n_particles=cfg.n_particles,
                                max_iterations=cfg.max_iterations, stall_iterations=cfg.stall_iterations,
                                min_iterations=cfg.min_iterations, score_tolerance=cfg.swarm_tolerance,
-                               seed=seed, x_initial=self._centre()[free],
-                               explore_objective=(embedded(partial(self.evaluate, view=explore))
-                                                  if explore is not None else None),
+                               seed=seed, x_initial=centre[free],
+                               explore_objective=(partial(evaluate_embedded, self, base=centre, free=free,
+                                                          view=explore) if explore is not None else None),
                                explore_iterations=cfg.explore_phase_iterations, on_iteration=self.on_iteration)
-        swarm = dataclasses.replace(swarm, best_x=self._in_full(swarm.best_x, free))
+        swarm = dataclasses.replace(swarm, best_x=embed(swarm.best_x, centre, free)[0])
         if not cfg.polish:
             return swarm, None
         polish = self._polish(swarm.best_x, free, search, swarm.best_score)
@@ -493,32 +493,19 @@ class CalibrationProblem:
             polish = dataclasses.replace(polish, best_score=float(self.evaluate(polish.best_x[None])[0]))
         return swarm, polish
 
-    def polished_on_subsets(self) -> bool:
-        """Whether the seeded runs' swarms and polishes score a subset of the frames (``SolverConfig.swarm_points``)."""
-        return self.search_view(self.config.seed) is not self.full
-
     def polish_everywhere(self, x: NDArray[np.floating], hold_translation: bool, score: float) -> SwarmResult:
         """The polish (``pattern_search``) from parameters x (D,) over every frame; ``score``: x's score there."""
         return self._polish(np.asarray(x, dtype=np.float64), self.free_parameters(hold_translation), self.full,
                             score)
 
     def _polish(self, x: NDArray[np.float64], free: NDArray[np.bool_], view: ScoringView, score: float) -> SwarmResult:
-        """Compass search over the free parameters from x (D,) on ``view`` (x scores ``score`` there), result in D."""
+        """Compass search over the free parameters from x (D,) on ``view`` (x scores ``score`` there), the others
+        at the box's centre; the result in all D parameters."""
+        centre = 0.5 * (self.lower + self.upper)
         lower, upper = self.lower[free], self.upper[free]
-        result = pattern_search(self._embedding(free)(partial(self.evaluate, view=view)), x[free],
+        result = pattern_search(partial(evaluate_embedded, self, base=centre, free=free, view=view), x[free],
                                 0.1 * (upper - lower), lower, upper, min_step_fraction=0.005, score_at_x0=score)
-        return dataclasses.replace(result, best_x=self._in_full(result.best_x, free))
-
-    def _centre(self) -> NDArray[np.float64]:
-        return np.asarray(0.5 * (self.lower + self.upper))
-
-    def _embedding(self, free: NDArray[np.bool_]) -> Callable[[Callable[[NDArray[np.float64]], NDArray[np.float64]]],
-                                                               Callable[[NDArray[np.float64]], NDArray[np.float64]]]:
-        """Wraps an objective of (P, D) parameters into one of the free parameters (P, F), the others at the centre."""
-        return lambda objective: lambda z: objective(embed(z, base=self._centre(), free=free))
-
-    def _in_full(self, z: NDArray[np.float64], free: NDArray[np.bool_]) -> NDArray[np.float64]:
-        return np.asarray(embed(z, base=self._centre(), free=free)[0])
+        return dataclasses.replace(result, best_x=embed(result.best_x, centre, free)[0])
 
 
 def _together(channels: list[Scorer], selections: NDArray[np.bool_] | None, twins: list[Scorer]) -> GomChannels | None:
