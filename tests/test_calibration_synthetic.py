@@ -602,7 +602,8 @@ def test_search_reports_progress_with_an_eta_that_ends_with_the_search() -> None
 
 def test_each_runs_swarm_scores_a_spread_subset_of_many_frames() -> None:
     """Up to the point budget every frame is scored; beyond it each run's swarm takes every s-th frame from an
-    offset its seed turns: about the budget's points, spread over the log, and consecutive seeds cover all."""
+    offset its seed turns: as many frames as fit in the budget (at least two), spread over the log, and
+    consecutive seeds cover all."""
     from fleetcal.stages.calibration.problem import swarm_frame_subset
 
     assert swarm_frame_subset([6000] * 10, 60_000, 0) is None and swarm_frame_subset([6000] * 40, 0, 3) is None
@@ -611,7 +612,8 @@ def test_each_runs_swarm_scores_a_spread_subset_of_many_frames() -> None:
     assert subsets[0] == list(range(0, 40, 4)) and subsets[1] == list(range(1, 40, 4))
     assert sorted(i for s in subsets for i in s or []) == list(range(40))
     assert swarm_frame_subset([6000] * 25, 60_000, 5) == list(range(2, 25, 3))
-    assert swarm_frame_subset([21_000] * 10, 60_000, 0) == [0, 4, 8]  # a dense rig: three frames, about the budget
+    assert swarm_frame_subset([21_000] * 10, 60_000, 0) == [0, 5]  # a dense rig: the two frames that fit
+    assert swarm_frame_subset([24_500] * 40, 60_000, 1) == [1, 21]  # ... however many frames the log has
     assert swarm_frame_subset([90_000], 60_000, 1) is None  # a frame over the budget is still scored ...
     assert swarm_frame_subset([31_000, 29_000, 30_000], 60_000, 1) is None  # ... and at least two of them
     assert swarm_frame_subset([31_000] * 4, 60_000, 1) == [1, 3]

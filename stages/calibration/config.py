@@ -64,12 +64,15 @@ class SolverConfig:
             (``suspect`` both ways), which moved the 90th percentile from 0.70 to 1.03 deg. A gain
             threshold of 1e-3 instead of 1e-4 saved as much time but left PJLab rig2 3.6 deg off from a start.
         swarm_points: each seeded run's swarm scores every frame while their points (``problem.points_scored``)
-            add up to at most this many, else every s-th frame from an offset its seed turns, about this many
-            points (``problem.swarm_frame_subset``). Each run's polish scores its swarm's frames as well; the
-            chosen run's pose is then polished on every frame, and all reported scores use every frame. A
-            run's cost then stops growing with the frames, so more frames buy accuracy for the price of one
-            polish, and a dense rig's swarm scores fewer frames than a sparse one's; runs on different frames
-            that agree confirm each other. Polishing every run on every frame instead took the 64 x 1024 +
+            add up to at most this many, else as many frames as fit in this many points (at least two), every
+            s-th frame from an offset its seed turns (``problem.swarm_frame_subset``). Each run's polish scores
+            its swarm's frames as well; the chosen run's pose is then polished on every frame, and all reported
+            scores use every frame. A run's cost then stops growing with the frames, so more frames buy accuracy
+            for the price of one polish, and a dense rig's swarm scores fewer frames than a sparse one's; runs on
+            different frames that agree confirm each other. The 64 x 1024 + 1920x1208 fisheye rig (24.5 k points
+            a frame) scores 2 frames a candidate at 10 and at 40 frames; rounding the frames' stride up instead
+            (every 17th of 40: 3 frames, 73 k points) took its 40-frame search 78 s instead of 43-52 s.
+            Polishing every run on every frame instead took the 64 x 1024 +
             1920x1208 fisheye rig's 40 frames 109 s end to end instead of 83 s (0.26 deg / 4.7 cm vs 0.20 /
             3.3 cm), with the same accuracy on the simulated 64-beam street and fisheye rig (10 frames, from
             their tf and two starts: 0.09-0.12 deg and 0.05-0.07 deg either way). 0: all. The swarm needs

@@ -133,13 +133,15 @@ MIN_SWARM_FRAMES = 2  # a single frame's scene can leave a direction unfixed tha
 
 def swarm_frame_subset(frame_points: Sequence[int], budget: int, seed: int) -> list[int] | None:
     """The frames a seeded run's swarm scores: all (None) while their points (``frame_points``, per frame) add up
-    to at most ``budget`` (0: no limit), else every s-th frame from an offset that the seed turns (s = ceil(points /
-    budget), keeping at least ``MIN_SWARM_FRAMES``), so that a candidate costs about ``budget`` points and the runs'
-    swarms see different frames of the log; the polish and every reported score use all frames."""
+    to at most ``budget`` (0: no limit), else as many frames of the mean size as fit in the budget (at least
+    ``MIN_SWARM_FRAMES``): every s-th frame from an offset that the seed turns, so that a candidate costs at most
+    about ``budget`` points however many frames the log has, and the runs' swarms see different frames of the
+    log; the polish and every reported score use all frames."""
     total, n_frames = int(sum(frame_points)), len(frame_points)
     if budget <= 0 or total <= budget:
         return None
-    step = min(-(-total // budget), max(n_frames // MIN_SWARM_FRAMES, 1))
+    fitting = max(budget * n_frames // total, MIN_SWARM_FRAMES)
+    step = min(-(-n_frames // fitting), max(n_frames // MIN_SWARM_FRAMES, 1))
     return None if step == 1 else list(range(seed % step, n_frames, step))
 
 
