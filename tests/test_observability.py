@@ -49,10 +49,11 @@ def test_translation_profile_is_the_shift_against_the_median_turn() -> None:
 
 
 def test_a_shift_the_rotation_can_imitate_loses_nothing() -> None:
-    """On the ridge, moving x 15 cm is fully made up by turning about y: the profile is flat along x."""
+    """On the ridge, moving x 15 cm is fully made up by turning about y: the profile is flat along x, to what
+    the re-fit's last step (0.05 deg) leaves: a loss within 1 % of the median turn's."""
     problem = QuadraticProblem([1e-2, 1e-2, 1e-2, 0.0, 0.5, 0.5], ridge=4.0)  # 15 cm = 0.6 deg about y
     ratios = translation_profile(problem, problem.x_star, 0.15, 0.5)  # type: ignore[arg-type]
-    assert abs(ratios[0]) < 1e-3
+    assert abs(ratios[0]) < 0.01
     assert ratios[1] > 1.0 and ratios[2] > 1.0
     assert weak_axes(ratios, 1.0) == ["x"]
 

@@ -23,7 +23,10 @@ AXES = ("x", "y", "z")
 _REFIT_STEP_DEG = 0.25  # first pattern-search steps of the re-fit: rotation, degrees ...
 _REFIT_STEP_M = 0.02  # ... and translation, metres
 _REFIT_STEP_FOCAL = 0.005
-_REFIT_MIN_STEP_FRACTION = 0.05  # down to 0.0125 deg / 1 mm
+_REFIT_MIN_STEP_FRACTION = 0.2
+"""The re-fits stop at 0.05 deg / 4 mm: a profile compares score losses of 0.5 deg turns and 15 cm moves, and
+stopping at 0.0125 deg / 1 mm instead took KITTI's profile 2.6 k evaluations instead of 1.4 k for the same weak
+axes on KITTI, PJLab rig2 and the simulated 16-beam street (ratios within 0.04)."""
 
 
 def profile_drop(problem: CalibrationProblem, x_best: NDArray[np.float64], best_score: float, index: int,
