@@ -72,12 +72,11 @@ class SolverConfig:
             different frames that agree confirm each other. The 64 x 1024 + 1920x1208 fisheye rig (24.5 k points
             a frame) scores 2 frames a candidate at 10 and at 40 frames; rounding the frames' stride up instead
             (every 17th of 40: 3 frames, 73 k points) took its 40-frame search 78 s instead of 43-52 s.
-            Polishing every run on every frame instead took the 64 x 1024 +
-            1920x1208 fisheye rig's 40 frames 109 s end to end instead of 83 s (0.26 deg / 4.7 cm vs 0.20 /
-            3.3 cm), with the same accuracy on the simulated 64-beam street and fisheye rig (10 frames, from
-            their tf and two starts: 0.09-0.12 deg and 0.05-0.07 deg either way). 0: all. The swarm needs
-            enough points to find the optimum's basin, not enough frames: the simulated 64-beam street
-            (10 k points a frame) from its tf and two starts
+            Polishing every run on every frame instead took that rig's 40 frames 109 s end to end instead of
+            83 s (0.26 deg / 4.7 cm vs 0.20 / 3.3 cm), with the same accuracy on the simulated 64-beam street
+            and fisheye rig (10 frames, from their tf and two starts: 0.09-0.12 deg and 0.05-0.07 deg either
+            way). 0: all. The swarm needs enough points to find the optimum's basin, not enough frames: the
+            simulated 64-beam street (10 k points a frame) from its tf and two starts
             0.12 / 0.09 / 0.11 deg on 3 frames vs 0.10 / 0.12 / 0.11 on 10, a third of the time; with 13-16 k
             points on 3 of their frames the 32-beam street (5 k a frame) lands 0.37 / 0.22 / 0.31 deg, 28-35 cm
             vs 0.36 / 0.21 / 0.36 deg, 27-29 cm on 10, the wide-angle 16-beam rig 0.42 / 0.50 / 0.09 deg vs
