@@ -43,6 +43,9 @@ CAMERAS = {
                                np.array([0.05, -0.01, 0.002, -0.0005]), "equidistant"),
     "cylindrical": CameraModel(2000, 500, np.array([[318.0, 0, 1000], [0, 300.0, 250], [0, 0, 1]]),
                                np.zeros(0), "cylindrical"),
+    # zero coefficients (rectified images) are scored as a pinhole: the same pixels, no radius limit
+    "plumb_bob zero": CameraModel(640, 480, K, np.zeros(5), "plumb_bob"),
+    "rational_polynomial zero": CameraModel(640, 480, K, np.zeros(8), "rational_polynomial"),
 }
 
 
@@ -119,7 +122,7 @@ def gom_numpy(points: NDArray[np.float64], lgx: NDArray[np.float64], lgy: NDArra
     return gom_reference(lgx[valid], lgy[valid], lmag[valid], gx, gy), int(valid.sum())
 
 
-@pytest.mark.parametrize("model", ["plumb_bob", "equidistant", "cylindrical"])
+@pytest.mark.parametrize("model", ["plumb_bob", "plumb_bob zero", "equidistant", "cylindrical"])
 def test_gom_kernel_matches_numpy_reference(model: str) -> None:
     camera = CAMERAS[model]
     rng = np.random.default_rng(3)
