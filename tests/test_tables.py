@@ -48,7 +48,7 @@ def test_column_refuses_values_of_another_type(values: list[object], dtype: pa.D
 
 
 def test_rows_round_trip_through_parquet_with_missing_keys(tmp_path: Path) -> None:
-    rows = [{"camera_topic": "/cam/front", "score": 0.71, "frames_used": 3},
+    rows: list[dict[str, object]] = [{"camera_topic": "/cam/front", "score": 0.71, "frames_used": 3},
             {"camera_topic": "/cam/rear", "verdict": "suspect"}]
     path = write_rows(rows, CALIBRATION_SCHEMA, tmp_path / "calibration.parquet")
     table = pq.read_table(path)
