@@ -619,6 +619,25 @@ def test_each_runs_swarm_scores_a_spread_subset_of_many_frames() -> None:
     assert swarm_frame_subset([31_000] * 4, 60_000, 1) == [1, 3]
 
 
+def test_a_view_of_some_frames_scores_each_with_its_own_camera_pose() -> None:
+    """A rig's frames carry their camera's pose relative to the first camera; a view of some of the frames
+    (a run's swarm frames) scores each of them exactly as the whole problem does."""
+    T_true = true_T_camera_lidar()
+    turn = np.eye(4)
+    turn[:3, :3] = cv2.Rodrigues(np.radians([0.0, 3.0, 1.0]))[0]
+    turn[:3, 3] = [0.05, 0.0, 0.02]
+    frames = [dataclasses.replace(synthetic_frame(seed), T_camera_camera0=np.eye(4) if seed % 2 == 0 else turn)
+              for seed in range(4)]
+    problem = CalibrationProblem(frames, T_true, SolverConfig(swarm_points=1))
+    view = problem.search_view(1)
+    assert view.frames == [1, 3]
+    x = np.random.default_rng(0).uniform(-1.0, 1.0, (5, 6)) * [1.0, 1.0, 1.0, 0.05, 0.05, 0.05]
+    full_scores, full_counts = problem.frame_scores(x)
+    view_scores, view_counts = problem.frame_scores(x, view)
+    np.testing.assert_array_equal(view_counts, full_counts[:, view.frames])
+    np.testing.assert_allclose(view_scores, full_scores[:, view.frames], rtol=1e-12)
+
+
 def test_runs_polished_on_their_swarms_frames_end_with_a_polish_on_every_frame() -> None:
     """With a point budget below the frames' points each run's swarm and polish score two of the four frames;
     the chosen pose is then polished on all four, and the score reported is its score over all four."""

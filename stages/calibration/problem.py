@@ -417,7 +417,7 @@ class CalibrationProblem:
         T_c0 = delta_transforms(x) @ self.T_init
         focal = x[:, 6] if x.shape[1] > 6 else None
         self.evaluations += x.shape[0]
-        return [view.batches(k, self.T_camera_camera0[k] @ T_c0, focal) for k in range(len(view.scorers))]
+        return [view.batches(k, self.T_camera_camera0[frame] @ T_c0, focal) for k, frame in enumerate(view.frames)]
 
     def _channel_counts(self, x: NDArray[np.floating]) -> list[NDArray[np.int64]]:
         """Projected points per frame and channel of the first candidate of x."""
