@@ -6,7 +6,8 @@ frames asked for):
 
 - ``ouster64+fisheye``: 64 x 1024 organised cloud + one 1920x1208 equidistant fisheye;
 - ``hdl32+6cams``: 32 beams + six 1600x900 pinhole cameras, calibrated with 1 camera (the forward one)
-  or all 6 (``--joint``).
+  or all 6 (``--joint``); its log's drift is the lidar mount's (``SimulationOptions.drift = "lidar"``), so the
+  tf between the cameras is exact, as ``--joint`` assumes.
 
 Each cell is one ``run_calibration`` (the calibrate workflow: pairing, per-frame stages in process, the
 search) from the log's tf with ``--frames`` F, in a fresh child process, and reports wall seconds end to
@@ -42,7 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 RIGS: dict[str, dict[str, Any]] = {
     "ouster64+fisheye": {"beams": 64, "columns": 1024, "organized": True, "fisheye": True, "width": 1920,
                          "height": 1208, "cameras": 1},
-    "hdl32+6cams": {"beams": 32, "columns": 1024, "width": 1600, "height": 900, "cameras": 6},
+    "hdl32+6cams": {"beams": 32, "columns": 1024, "width": 1600, "height": 900, "cameras": 6, "drift": "lidar"},
 }
 REAL = {"kitti": "kitti_2011_09_26.mcap", "nuscenes": "nuscenes_n015.bag", "pjlab": "pjlab_road_rig1",
         "pjlab-rig2": "pjlab_road_rig2"}

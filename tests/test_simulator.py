@@ -552,6 +552,28 @@ def test_perturb_has_exact_magnitudes_and_rig_is_consistent() -> None:
         build_rig(0, 1.9, 0, 0, 0)
 
 
+def test_a_drifted_lidar_mount_leaves_the_cameras_tf_to_one_another_exact() -> None:
+    """``drift="lidar"``: every camera's logged extrinsic is off by the same lidar drift (2 deg, 12 cm) and the
+    transforms between the cameras that the log implies are the true ones; ``drift="cameras"`` (default)
+    drifts each camera apart."""
+    lidar = build_rig(6, 1.9, 2.0, 0.12, seed=3, drift="lidar")
+    cameras = build_rig(6, 1.9, 2.0, 0.12, seed=3)
+    for rig, apart in ((lidar, False), (cameras, True)):
+        true0, log0 = rig.T_camera_lidar[0], rig.T_camera_lidar_in_log[0]
+        for i in range(6):
+            assert rotation_error_deg(rig.T_camera_lidar[i], rig.T_camera_lidar_in_log[i]) == pytest.approx(2.0)
+            assert translation_error_m(rig.T_camera_lidar[i], rig.T_camera_lidar_in_log[i]) == pytest.approx(0.12)
+            true_i0 = rig.T_camera_lidar[i] @ invert(true0)
+            logged_i0 = rig.T_camera_lidar_in_log[i] @ invert(log0)
+            assert (rotation_error_deg(true_i0, logged_i0) > 0.5) == (apart and i > 0)
+            if not apart:
+                np.testing.assert_allclose(logged_i0, true_i0, atol=1e-12)
+    np.testing.assert_array_equal(cameras.T_camera_lidar_in_log,
+                                  build_rig(6, 1.9, 2.0, 0.12, seed=3, drift="cameras").T_camera_lidar_in_log)
+    with pytest.raises(ConfigError):
+        build_rig(2, 1.9, 2.0, 0.1, seed=0, drift="camera")
+
+
 def test_wide_angle_pixels_beyond_the_lens_models_region_see_nothing() -> None:
     """The wide-angle lens's model folds 50 deg off axis, inside the image's corners: those pixels have no
     ray (black), every pixel within the region's image has one, and its ray projects back onto it."""

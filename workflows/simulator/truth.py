@@ -80,11 +80,17 @@ def perturb(
 
 
 def build_rig(cameras: int, lidar_height_m: float, perturb_deg: float, perturb_m: float, seed: int,
-              lidar_roll_deg: float = 0.0, camera_yaw_deg: float = 0.0, camera_roll_deg: float = 0.0) -> Rig:
+              lidar_roll_deg: float = 0.0, camera_yaw_deg: float = 0.0, camera_roll_deg: float = 0.0,
+              drift: str = "cameras") -> Rig:
     """Lidar on the roof, rolled ``lidar_roll_deg`` about its forward (x) axis (0: level); camera i looks
     along ``CAMERA_YAWS_DEG[i]`` plus ``camera_yaw_deg`` (left positive), 0.3 m out from the lidar and 0.35 m
     below it, pitched about 4 deg down, rolled ``camera_roll_deg`` about its optical axis, with small seeded
-    mounting errors."""
+    mounting errors.
+
+    ``drift``: what the log's calibration gets wrong. ``cameras``: each camera's extrinsic is perturbed on its
+    own (every pair drifted apart). ``lidar``: the lidar's mount is perturbed once (turned ``perturb_deg`` in
+    the base frame about its own origin, moved ``perturb_m``), so every camera's extrinsic is off by the same
+    lidar drift and the tf between the cameras is exact, which is what ``calibrate --joint`` assumes."""
     if not 1 <= cameras <= MAX_CAMERAS:
         raise ConfigError(f"cameras must be 1..{MAX_CAMERAS}, got {cameras}")
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x716]))
@@ -100,8 +106,13 @@ def build_rig(cameras: int, lidar_height_m: float, perturb_deg: float, perturb_m
         offset = np.array([0.3 * np.cos(np.radians(yaw)), 0.3 * np.sin(np.radians(yaw)), -0.35])
         T_base_cameras.append(make_T(R_mount @ R_BASE_OPTICAL, T_base_lidar[:3, 3] + offset))
     cams = np.stack(T_base_cameras)
-    true = [invert(T) @ T_base_lidar for T in cams]
-    in_log = np.stack([perturb(T, perturb_deg, perturb_m, rng) for T in true])
+    if drift == "lidar":
+        T_base_lidar_in_log = perturb(T_base_lidar, perturb_deg, perturb_m, rng)
+        in_log = np.stack([invert(T) @ T_base_lidar_in_log for T in cams])
+    elif drift == "cameras":
+        in_log = np.stack([perturb(invert(T) @ T_base_lidar, perturb_deg, perturb_m, rng) for T in cams])
+    else:
+        raise ConfigError(f"drift must be 'cameras' or 'lidar', got {drift!r}")
     return Rig(T_base_lidar=T_base_lidar, T_base_cameras=cams, T_camera_lidar_in_log=in_log)
 
 

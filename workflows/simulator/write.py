@@ -88,7 +88,8 @@ class SimulationOptions:
     mounted rolled about its forward axis (its rings then cross the forward camera's image slanted).
     ``camera_yaw_deg`` / ``camera_roll_deg``: every camera turned left by that much / rolled about its optical
     axis. ``tf_static`` False: no ``/tf_static`` (neither the lidar's mount nor the cameras'; the truth file
-    still has them).
+    still has them). ``drift``: ``cameras`` (default) perturbs each camera's extrinsic on its own, ``lidar`` the
+    lidar's mount once, so the tf between the cameras stays exact (``truth.build_rig``; ``calibrate --joint``).
     ``beams`` / ``columns`` 0 (default): the pattern's (``DEFAULT_LAYOUT``: 64 x 1024 spinning, 6 x 4000
     rosette), filled in on construction. ``odometry`` False: no ``/tf`` odometry is written (a raw sensor
     log; the truth file still has the trajectory).
@@ -113,6 +114,7 @@ class SimulationOptions:
     speed_m_s: float | None = None
     perturb_deg: float = 2.0
     perturb_m: float = 0.1
+    drift: str = "cameras"
     seed: int = 0
     width: int = 1280
     height: int = 720
@@ -177,6 +179,7 @@ class SimulationOptions:
                 np.isfinite(self.perturb_m) and 0 <= self.perturb_m <= 2,
                 f"perturb-m must be in 0..2, got {self.perturb_m}",
             ),
+            (self.drift in ("cameras", "lidar"), f"drift must be 'cameras' or 'lidar', got {self.drift!r}"),
             (0 <= self.seed < 2**63, f"seed must be a non-negative integer, got {self.seed}"),
             (
                 16 <= self.width <= 8192 and 16 <= self.height <= 8192,
@@ -278,7 +281,7 @@ def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet:
     motion = LoopMotion(scene.route, opts.speed)
     rig = build_rig(opts.cameras, scene.lidar_height_m, opts.perturb_deg, opts.perturb_m, opts.seed,
                     lidar_roll_deg=opts.lidar_roll_deg, camera_yaw_deg=opts.camera_yaw_deg,
-                    camera_roll_deg=opts.camera_roll_deg)
+                    camera_roll_deg=opts.camera_roll_deg, drift=opts.drift)
     lidar = LidarModel(
         beams=opts.beams,
         columns=opts.columns,
@@ -442,7 +445,9 @@ def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet:
         ],
         "speed_m_s": opts.speed,
         "note": "T_camera_lidar is exact; T_camera_lidar_in_log is it turned by perturb_deg about a random "
-        "axis and moved by perturb_m in a random direction",
+        "axis and moved by perturb_m in a random direction (drift 'lidar': the lidar's mount is, once for every "
+        "camera)",
+        "drift": opts.drift,
         "perturb_deg": opts.perturb_deg,
         "perturb_m": opts.perturb_m,
     }
