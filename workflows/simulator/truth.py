@@ -30,6 +30,8 @@ ODOM_FRAME = "odom"
 LIDAR_TOPIC = "/lidar/points"
 CAMERA_YAWS_DEG = (0.0, 90.0, -90.0, 180.0, 45.0, -45.0, 135.0, -135.0)
 MAX_CAMERAS = len(CAMERA_YAWS_DEG)
+DRIFTS = ("cameras", "lidar")
+"""What a simulated log's calibration gets wrong (``build_rig``'s ``drift``)."""
 # base_link (x forward, y left, z up) -> camera optical (x right, y down, z forward), columns = optical axes
 R_BASE_OPTICAL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
@@ -112,7 +114,7 @@ def build_rig(cameras: int, lidar_height_m: float, perturb_deg: float, perturb_m
     elif drift == "cameras":
         in_log = np.stack([perturb(invert(T) @ T_base_lidar, perturb_deg, perturb_m, rng) for T in cams])
     else:
-        raise ConfigError(f"drift must be 'cameras' or 'lidar', got {drift!r}")
+        raise ConfigError(f"drift must be one of {', '.join(DRIFTS)}, got {drift!r}")
     return Rig(T_base_lidar=T_base_lidar, T_base_cameras=cams, T_camera_lidar_in_log=in_log)
 
 

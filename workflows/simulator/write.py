@@ -50,6 +50,7 @@ from fleetcal.workflows.simulator.raycast import build_grid
 from fleetcal.workflows.simulator.scene import SCENES, build_scene
 from fleetcal.workflows.simulator.truth import (
     BASE_FRAME,
+    DRIFTS,
     LIDAR_FRAME,
     LIDAR_TOPIC,
     MAX_CAMERAS,
@@ -179,7 +180,7 @@ class SimulationOptions:
                 np.isfinite(self.perturb_m) and 0 <= self.perturb_m <= 2,
                 f"perturb-m must be in 0..2, got {self.perturb_m}",
             ),
-            (self.drift in ("cameras", "lidar"), f"drift must be 'cameras' or 'lidar', got {self.drift!r}"),
+            (self.drift in DRIFTS, f"drift must be one of {', '.join(DRIFTS)}, got {self.drift!r}"),
             (0 <= self.seed < 2**63, f"seed must be a non-negative integer, got {self.seed}"),
             (
                 16 <= self.width <= 8192 and 16 <= self.height <= 8192,
@@ -445,8 +446,8 @@ def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet:
         ],
         "speed_m_s": opts.speed,
         "note": "T_camera_lidar is exact; T_camera_lidar_in_log is it turned by perturb_deg about a random "
-        "axis and moved by perturb_m in a random direction (drift 'lidar': the lidar's mount is, once for every "
-        "camera)",
+        "axis and moved by perturb_m in a random direction (drift 'lidar': the lidar's mount is, once for all "
+        "cameras, so the tf between them is exact)",
         "drift": opts.drift,
         "perturb_deg": opts.perturb_deg,
         "perturb_m": opts.perturb_m,
