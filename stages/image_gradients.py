@@ -23,6 +23,8 @@ __all__ = [
     "ImageGradients",
     "camera_frame_gradients",
     "compute_image_gradients",
+    "sampling_stride",
+    "subsampled",
     "to_grey_u8",
     "undistort_image",
 ]
@@ -40,9 +42,13 @@ class ImageGradients:
     radians in (-pi, pi], 0 where the magnitude is 0) are (H, W) float32; the last two are computed
     on each access, so a frame holds 8 bytes per pixel, not 16. All are 0 on the 1-pixel image border
     and outside the (eroded) valid mask.
+
+    ``stride``: ``gxy[i, j]`` is the gradient at image pixel (u, v) = (j * stride, i * stride) (``subsampled``);
+    1: every pixel.
     """
 
     gxy: NDArray[np.float32]
+    stride: int = 1
 
     @property
     def gx(self) -> NDArray[np.float32]:
@@ -131,6 +137,27 @@ def compute_image_gradients(
         eroded = cv2.erode(valid_u8, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)
         image_kernels.zero_border_and_invalid(gxy, eroded, True)
     return ImageGradients(gxy)
+
+
+def sampling_stride(blur_sigma_px: float) -> int:
+    """The widest pixel stride at which gradients of an image blurred by a Gaussian of ``blur_sigma_px`` pixels
+    can be stored without losing what the blur left: the largest s whose grid's Nyquist frequency 1 / (2 s)
+    cycles per pixel the Gaussian passes at no more than 1e-3 of its peak, exp(-pi^2 sigma^2 / (2 s^2)) <= 1e-3,
+    i.e. s <= pi sigma / sqrt(2 ln 1000) = 0.845 sigma (at least 1). 2 px of blur: 1; 3.1 px (1920 px wide): 2."""
+    if not np.isfinite(blur_sigma_px) or blur_sigma_px <= 0:
+        return 1
+    return max(1, int(np.floor(np.pi * float(blur_sigma_px) / np.sqrt(2.0 * np.log(1000.0)))))
+
+
+def subsampled(gradients: ImageGradients, stride: int) -> ImageGradients:
+    """``gradients`` kept at every ``stride``-th pixel along rows and columns (``ImageGradients.stride``
+    times ``stride``): a quarter of the memory at stride 2. Interpolated between the kept pixels they are the
+    full image's gradients wherever the image was blurred enough for the stride (``sampling_stride``)."""
+    if stride < 1:
+        raise InputError(f"stride must be >= 1, got {stride}")
+    if stride == 1:
+        return gradients
+    return ImageGradients(np.ascontiguousarray(gradients.gxy[::stride, ::stride]), gradients.stride * stride)
 
 
 def undistort_image(

@@ -16,6 +16,8 @@ from fleetcal.stages.image_gradients import (
     ImageGradients,
     camera_frame_gradients,
     compute_image_gradients,
+    sampling_stride,
+    subsampled,
     to_grey_u8,
     undistort_image,
 )
@@ -180,6 +182,28 @@ def test_blur_matches_gaussian_then_sobel() -> None:
     np.testing.assert_allclose(grads.gx, gx_ref, atol=1e-3)
     np.testing.assert_allclose(grads.gy, gy_ref, atol=1e-3)
     assert grads.magnitude.mean() < 0.5 * compute_image_gradients(grey, equalize=False).magnitude.mean()
+
+
+@pytest.mark.parametrize("sigma, stride", [(0.0, 1), (1.0, 1), (2.0, 1), (2.58, 2), (3.1, 2), (3.6, 3), (6.2, 5)])
+def test_sampling_stride_is_the_widest_the_blur_allows(sigma: float, stride: int) -> None:
+    """The Gaussian's response at the kept grid's Nyquist frequency (1 / (2 s) cycles per pixel) is at most
+    1e-3 of its peak at the stride chosen and above it at the next one (or the stride is 1)."""
+    def response(s: int) -> float:
+        return float(np.exp(-(np.pi**2) * sigma**2 / (2.0 * s**2)))
+
+    assert sampling_stride(sigma) == stride
+    assert stride == 1 or response(stride) <= 1e-3
+    assert response(stride + 1) > 1e-3
+
+
+def test_subsampled_gradients_keep_every_strideth_pixel() -> None:
+    gxy = np.random.default_rng(4).standard_normal((7, 10, 2)).astype(np.float32)
+    kept = subsampled(ImageGradients(gxy), 3)
+    assert kept.gxy.shape == (3, 4, 2) and kept.stride == 3 and kept.gxy.flags.c_contiguous
+    assert kept.gxy[2, 3, 1] == gxy[6, 9, 1] and kept.gx[1, 2] == gxy[3, 6, 0]
+    assert subsampled(kept, 2).stride == 6 and subsampled(kept, 1) is kept
+    with pytest.raises(InputError, match="stride"):
+        subsampled(kept, 0)
 
 
 @pytest.mark.parametrize(

@@ -19,7 +19,8 @@ from fleetcal.pipeline.transforms import Mat4, apply, screw_apply
 
 class GradientImage(Protocol):
     """Anything with image gradients, e.g. ``stages.image_gradients.ImageGradients``: ``gxy`` (H, W, 2)
-    along columns and rows, and (H, W) views or derivations of it."""
+    along columns and rows, and (H, W) views or derivations of it, at every ``stride``-th pixel of the image
+    (``gxy[i, j]`` at pixel (u, v) = (j * stride, i * stride))."""
 
     @property
     def gxy(self) -> NDArray[np.float32]: ...
@@ -33,6 +34,9 @@ class GradientImage(Protocol):
     @property
     def magnitude(self) -> NDArray[np.float32]: ...
 
+    @property
+    def stride(self) -> int: ...
+
 
 @dataclass
 class CalibrationFrame:
@@ -44,8 +48,8 @@ class CalibrationFrame:
             (e.g. range and normals): each gets its own lidar gradients and the frame's score is the
             mean of the C scores. Points with a NaN in any column are dropped.
         camera: intrinsics of the image.
-        gradients: image gradients after blur (``compute_image_gradients``): ``gxy`` (H, W, 2), which the
-            objective reads in place, and its ``gx``, ``gy``, ``magnitude`` (H, W).
+        gradients: image gradients after blur (``compute_image_gradients``): ``gxy`` (H', W', 2) at every
+            ``stride``-th pixel, which the objective reads in place, and its ``gx``, ``gy``, ``magnitude``.
         intensity: (H, W) equalised grey, uint8 0-255 (or float in [0, 1]); needed by the NMI metric only.
         mask: (H, W) bool, True where the image is valid; None: all valid.
         T_camera_camera0: 4x4 pose of the reference camera in this camera (identity for one camera).
@@ -172,7 +176,8 @@ class CameraFeatures:
     Attributes:
         stamp_ns, topic, frame_id: of the image.
         camera: its intrinsics.
-        gradients: image gradients after the blur (``stages.image_gradients.compute_image_gradients``).
+        gradients: image gradients after the blur (``stages.image_gradients.compute_image_gradients``), kept
+            at the widest stride the blur allows (``stages.image_gradients.sampling_stride``).
         intensity: (H, W) histogram-equalised grey, uint8 (for NMI).
         image: the decoded image when the stage was asked to keep it (for overlays), else None.
     """
@@ -206,17 +211,19 @@ def lidar_feature_stage(lidar: LidarFrame, feature: str = "range") -> LidarFeatu
 def camera_feature_stage(camera: CameraFrame, blur_sigma_px: float | None = None,
                          keep_image: bool = False) -> CameraFeatures:
     """Per-frame stage: image gradients of one image after a Gaussian blur (None: ``default_blur_sigma_px``
-    of its width) and its equalised grey; the image itself only with ``keep_image``.
+    of its width), kept at every ``sampling_stride(blur)``-th pixel (what the blur leaves of the image needs no
+    more: a 1920 px image's gradients take a quarter of the memory), and its equalised grey; the image itself
+    only with ``keep_image``.
 
     Raises:
         ProcessingError: the camera frame has no CameraModel (no CameraInfo in the log).
     """
-    from fleetcal.stages.image_gradients import compute_image_gradients
+    from fleetcal.stages.image_gradients import compute_image_gradients, sampling_stride, subsampled
 
     if camera.camera is None:
         raise ProcessingError(f"camera {camera.topic} has no CameraInfo: intrinsics are unknown")
     sigma = default_blur_sigma_px(camera.width) if blur_sigma_px is None else blur_sigma_px
-    grads = compute_image_gradients(camera.image, blur_sigma_px=sigma)
+    grads = subsampled(compute_image_gradients(camera.image, blur_sigma_px=sigma), sampling_stride(sigma))
     return CameraFeatures(camera.stamp_ns, camera.topic, camera.frame_id, camera.camera, grads,
                           equalised_grey(camera.image), camera.image if keep_image else None)
 

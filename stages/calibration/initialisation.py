@@ -159,8 +159,8 @@ def _prepare(frame: CalibrationFrame, step_deg: float, k: int) -> _FramePrep:
     if raw.shape[0] <= k:
         raise ProcessingError(f"frame {f.label!r}: {raw.shape[0]} valid lidar points, too few to search")
     neighbours = camera_sphere_neighbours(raw, np.eye(4), k, "angle")
-    planes = GradientPlanes.of_stacked(f.gradients.gxy, f.camera, f.mask).blurred(blur_for_step_px(f.camera,
-                                                                                                 step_deg))
+    planes = GradientPlanes.of_stacked(f.gradients.gxy, f.camera, f.mask, f.gradients.stride).blurred(
+        blur_for_step_px(f.camera, step_deg))
     prep = _FramePrep(f, points, raw, feature, neighbours, planes, np.asarray(f.T_camera_camera0, dtype=np.float64))
     lidar = lidar_view_gradients(raw, points, feature, np.eye(4), f.motion_rotation(), k=k, fit="lsq",
                                  neighbours=neighbours).magnitude

@@ -40,8 +40,9 @@ class MetricBatch:
     counts: NDArray[np.int64]
 
 
-def camera_params(camera: CameraModel) -> NDArray[np.float64]:
-    """Pack a CameraModel into the (16,) float64 layout the kernels read (see ``metric_kernels``).
+def camera_params(camera: CameraModel, stride: int = 1) -> NDArray[np.float64]:
+    """Pack a CameraModel into the (16,) float64 layout the kernels read (see ``metric_kernels``), in pixels of
+    an image kept at every ``stride``-th pixel (its pixel (j, i) is the image's (j * stride, i * stride)).
 
     Raises:
         ProcessingError: the camera has a rectification rotation, which the kernels do not apply (fold
@@ -55,7 +56,7 @@ def camera_params(camera: CameraModel) -> NDArray[np.float64]:
         # all coefficients zero (a rectified image: KITTI, nuScenes): the pinhole projection, exactly, without
         # the distortion polynomial per point (a third of a GOM evaluation on KITTI)
         cam[0] = mk.MODEL_NONE
-    cam[1:6] = (camera.fx, camera.fy, camera.cx, camera.cy, camera.K[0, 1])
+    cam[1:6] = np.array([camera.fx, camera.fy, camera.cx, camera.cy, camera.K[0, 1]]) / stride
     cam[6:14] = camera.coefficients(8)
     cam[14] = np.inf
     if camera.distortion_model in ("plumb_bob", "rational_polynomial") and np.any(camera.D):
@@ -110,8 +111,14 @@ def _mask(mask: NDArray[np.generic] | None, shape: tuple[int, int]) -> NDArray[n
     return m
 
 
-def _size_message(shape: tuple[int, ...], camera: CameraModel) -> str:
-    return f"image {shape[1]}x{shape[0]} does not match camera {camera.width}x{camera.height}"
+def _size_message(shape: tuple[int, ...], camera: CameraModel, stride: int = 1) -> str:
+    kept = f" kept at a stride of {stride} pixels" if stride > 1 else ""
+    return f"image {shape[1]}x{shape[0]} does not match camera {camera.width}x{camera.height}{kept}"
+
+
+def kept_shape(camera: CameraModel, stride: int) -> tuple[int, int]:
+    """(rows, columns) of an image of ``camera`` kept at every ``stride``-th pixel (``image[::stride, ::stride]``)."""
+    return (-(-camera.height // stride), -(-camera.width // stride))
 
 
 def _per_point(values: NDArray[np.floating], n: int, name: str) -> NDArray[np.float64]:
@@ -162,12 +169,15 @@ class GradientPlanes:
     """One image's gradients packed for the GOM kernel, built once per frame and shared by its scorers.
 
     Attributes:
-        planes: (H, W, 2) float32 image gradient along u and along v (e.g. Sobel), per pixel.
-        mask: (H, W) uint8, 1 where the image is valid.
+        planes: (H', W', 2) float32 image gradient along u and along v (e.g. Sobel) at every ``stride``-th
+            pixel: ``planes[i, j]`` is the image's pixel (u, v) = (j * stride, i * stride).
+        mask: (H', W') uint8, 1 where the image is valid, at the same pixels.
+        stride: pixels of the image per kept pixel, along rows and columns.
     """
 
     planes: NDArray[np.floating]
     mask: NDArray[np.uint8]
+    stride: int = 1
 
     @classmethod
     def of(cls, image_gx: NDArray[np.floating], image_gy: NDArray[np.floating], camera: CameraModel,
@@ -180,25 +190,34 @@ class GradientPlanes:
 
     @classmethod
     def of_stacked(cls, image_gxy: NDArray[np.floating], camera: CameraModel,
-                   mask: NDArray[np.generic] | None = None) -> GradientPlanes:
-        """Pack (H, W, 2) gradients (along u, along v) of an image of ``camera``; a C-contiguous float32
-        array (``ImageGradients.gxy``) is shared, not copied."""
+                   mask: NDArray[np.generic] | None = None, stride: int = 1) -> GradientPlanes:
+        """Pack (H', W', 2) gradients (along u, along v) of an image of ``camera`` kept at every ``stride``-th
+        pixel (``ImageGradients.stride``); ``mask`` is the whole image's (H, W). A C-contiguous float32 array
+        (``ImageGradients.gxy``) is shared, not copied."""
         gxy = np.asarray(image_gxy)
         if gxy.ndim != 3 or gxy.shape[2] != 2:
             raise ProcessingError(f"stacked image gradients must be (H, W, 2), got {gxy.shape}")
-        if gxy.shape[:2] != (camera.height, camera.width):
-            raise ProcessingError(_size_message(gxy.shape[:2], camera))
-        return cls(_planes(gxy), _mask(mask, gxy.shape[:2]))
+        if stride < 1 or gxy.shape[:2] != kept_shape(camera, stride):
+            raise ProcessingError(_size_message(gxy.shape[:2], camera, stride))
+        kept_mask = _mask(mask, (camera.height, camera.width))[::stride, ::stride]
+        return cls(_planes(gxy), np.ascontiguousarray(kept_mask), stride)
+
+    @property
+    def width_px(self) -> int:
+        """Width of the image the planes were kept from, to within ``stride`` pixels."""
+        return int(self.planes.shape[1]) * self.stride
 
     def blurred(self, sigma_px: float) -> GradientPlanes:
-        """The gradients smoothed by a Gaussian of ``sigma_px`` pixels (equal to the gradients of the image
-        blurred by it: both are linear filters); same mask."""
-        planes = np.stack([cv2.GaussianBlur(self.planes[:, :, c], (0, 0), sigma_px) for c in range(2)], axis=2)
-        return GradientPlanes(np.ascontiguousarray(planes), self.mask)
+        """The gradients smoothed by a Gaussian of ``sigma_px`` image pixels (equal to the gradients of the
+        image blurred by it: both are linear filters); same mask and stride."""
+        sigma = sigma_px / self.stride
+        planes = np.stack([cv2.GaussianBlur(self.planes[:, :, c], (0, 0), sigma) for c in range(2)], axis=2)
+        return GradientPlanes(np.ascontiguousarray(planes), self.mask, self.stride)
 
     def blurred_along(self, direction_uv: NDArray[np.floating], sigma_px: float) -> GradientPlanes:
-        """The gradients smoothed by a one-dimensional Gaussian of ``sigma_px`` pixels along the image
-        direction ``direction_uv`` (2,) (e.g. across a lidar's rings) and not across it; same mask."""
+        """The gradients smoothed by a one-dimensional Gaussian of ``sigma_px`` image pixels along the image
+        direction ``direction_uv`` (2,) (e.g. across a lidar's rings) and not across it; same mask and stride."""
+        sigma_px = sigma_px / self.stride
         d = np.asarray(direction_uv, dtype=np.float64)
         d = d / np.linalg.norm(d)
         half = max(1, int(np.ceil(3.0 * sigma_px)))
@@ -209,7 +228,7 @@ class GradientPlanes:
         kernel /= kernel.sum()
         planes = np.stack([cv2.filter2D(self.planes[:, :, c], -1, kernel, borderType=cv2.BORDER_REFLECT)
                            for c in range(2)], axis=2)
-        return GradientPlanes(np.ascontiguousarray(planes), self.mask)
+        return GradientPlanes(np.ascontiguousarray(planes), self.mask, self.stride)
 
 
 class GomScorer:
@@ -232,17 +251,17 @@ class GomScorer:
         theta = np.arctan2(gy, gx)
         self.c2 = np.ascontiguousarray(np.cos(2 * theta))
         self.s2 = np.ascontiguousarray(np.sin(2 * theta))
-        if image.planes.shape[:2] != (camera.height, camera.width):
-            raise ProcessingError(_size_message(image.planes.shape, camera))
+        if image.planes.shape[:2] != kept_shape(camera, image.stride):
+            raise ProcessingError(_size_message(image.planes.shape, camera, image.stride))
         self.image = image
-        self.cam = camera_params(camera)
+        self.cam = camera_params(camera, image.stride)
         self.R_gradients = None if R_camera_lidar_gradients is None else np.asarray(
             R_camera_lidar_gradients, dtype=np.float64).reshape(3, 3)
 
     def against(self, image: GradientPlanes) -> GomScorer:
         """This scorer's lidar gradients against other gradient planes of the same camera (e.g.
         ``image.blurred(...)`` for a wider basin)."""
-        if image.planes.shape != self.image.planes.shape:
+        if image.planes.shape != self.image.planes.shape or image.stride != self.image.stride:
             raise ProcessingError(f"gradient planes {image.planes.shape} do not match {self.image.planes.shape}")
         twin = copy.copy(self)
         twin.image = image
@@ -316,17 +335,18 @@ class LevinsonScorer:
 
     def __init__(self, points_xyz: NDArray[np.floating], lidar_weight: NDArray[np.floating],
                  edge_image: NDArray[np.floating], camera: CameraModel,
-                 mask: NDArray[np.generic] | None = None) -> None:
+                 mask: NDArray[np.generic] | None = None, stride: int = 1) -> None:
         """Args: points (N, 3) lidar frame; per-point depth-discontinuity weight (N,); edge image
-        (H, W) from ``levinson_edge_image``; camera intrinsics; optional valid mask."""
+        (H', W') from ``levinson_edge_image`` at every ``stride``-th pixel of the image; camera intrinsics;
+        optional (H, W) valid mask of the whole image."""
         self.points = _points(points_xyz)
         self.weight = _per_point(lidar_weight, self.points.shape[0], "lidar weight")
         img = np.asarray(edge_image)
-        if img.shape != (camera.height, camera.width):
-            raise ProcessingError(_size_message(img.shape, camera))
+        if stride < 1 or img.shape != kept_shape(camera, stride):
+            raise ProcessingError(_size_message(img.shape, camera, stride))
         self.planes = _planes(img)
-        self.mask = _mask(mask, img.shape)
-        self.cam = camera_params(camera)
+        self.mask = np.ascontiguousarray(_mask(mask, (camera.height, camera.width))[::stride, ::stride])
+        self.cam = camera_params(camera, stride)
         self.scale = 1.0 / max(float(np.sum(self.weight)), 1e-12)
 
     def score(self, T_camera_lidar_batch: NDArray[np.floating],

@@ -295,12 +295,13 @@ class CalibrationProblem:
             around = camera_sphere_neighbours(pts, T_cam_lidar, cfg.sphere_k, cfg.neighbours_on("camera"))
             weight = depth_discontinuities(pts, around, cfg.levinson_min_jump_m)
             sel = weight > 0
-            edges = levinson_edge_image(f.gradients.magnitude, cfg.levinson_blur_px)
-            return [LevinsonScorer(pts[sel], weight[sel], edges, f.camera, f.mask)], int(sel.sum()), None
+            stride = f.gradients.stride
+            edges = levinson_edge_image(f.gradients.magnitude, cfg.levinson_blur_px / stride)
+            return [LevinsonScorer(pts[sel], weight[sel], edges, f.camera, f.mask, stride)], int(sel.sum()), None
         scorers: list[Scorer] = []
         selections: list[NDArray[np.bool_]] = []
         neighbours: NDArray[np.int64] | None = None  # one sphere search per frame, shared by the channels
-        image = GradientPlanes.of_stacked(f.gradients.gxy, f.camera, f.mask)  # shared too
+        image = GradientPlanes.of_stacked(f.gradients.gxy, f.camera, f.mask, f.gradients.stride)  # shared too
         for c in range(feat.shape[1]):
             scorer, sel, neighbours = self._gom_scorer(f, raw, pts, feat[:, c], T_cam_lidar, image, neighbours)
             scorers.append(scorer)
@@ -407,7 +408,7 @@ class CalibrationProblem:
         if key not in self._explore_views:
             factor = self.config.explore_blur_factor  # times the blur of the image's width
             blurred = search.against(
-                lambda planes: planes.blurred(sigma_px=factor * default_blur_sigma_px(planes.planes.shape[1])))
+                lambda planes: planes.blurred(sigma_px=factor * default_blur_sigma_px(planes.width_px)))
             self._explore_views[key] = blurred.strided(self.config.explore_stride)
         return self._explore_views[key]
 
