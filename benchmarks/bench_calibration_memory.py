@@ -8,9 +8,9 @@ frame at once (``--joint`` rigs: every camera's too), so this increase times fra
 needs on top of the interpreter. The swarm is cut short (50 particles, 10 iterations, 1 run): its memory
 does not grow with the frames, and the accuracy is not what is measured here.
 
-Measured (2 cores): 326 / 393 / 482 MB at 1 / 4 / 8 frames, 22 MB per extra frame; the code before the
-gradients were kept as one float32 array shared with the objective (``d35a74e``) took 412 / 667 / 1026 MB,
-85-88 MB per extra frame.
+Measured (2 cores): 293 / 333 / 365 MB at 1 / 4 / 8 frames, 10-13 MB per extra frame: a 1920x1200 image's
+gradients are kept at every second pixel (its 3.1 px blur allows it, ``image_gradients.sampling_stride``), 4.6 MB,
+beside its 8-bit grey, 2.3 MB. Kept at every pixel they took 326 / 393 / 482 MB, 22 MB per extra frame.
 
     .venv/bin/python benchmarks/bench_calibration_memory.py [--frames 1 4 8] [--dir /tmp]
 """
@@ -91,12 +91,18 @@ def main() -> int:
             out = subprocess.run([sys.executable, __file__, "--child", str(log), str(n)], check=True,
                                  capture_output=True, text=True, env=env).stdout.split()
             rows.append((n, int(out[0]), float(out[1]), float(out[2])))
+    from fleetcal.stages.calibration.frame import default_blur_sigma_px
+    from fleetcal.stages.image_gradients import sampling_stride
+
     print(f"\n{'--frames':>8} {'used':>5} {'seconds':>8} {'peak RSS MB':>12} {'MB per extra frame':>19}")
     base_n, _, _, base_mb = rows[0]
     for n, used, seconds, peak_mb in rows:
         per = f"{(peak_mb - base_mb) / (n - base_n):.1f}" if n > base_n else "-"
         print(f"{n:>8} {used:>5} {seconds:>8.1f} {peak_mb:>12.1f} {per:>19}")
-    print(f"(a frame's image part: {WIDTH * HEIGHT * 9 / 1e6:.1f} MB, 8 bytes of gradients + 1 of grey a pixel)")
+    stride = sampling_stride(default_blur_sigma_px(WIDTH))
+    gradients_mb = 8 * (-(-WIDTH // stride)) * (-(-HEIGHT // stride)) / 1e6
+    print(f"(a frame's image part: {gradients_mb + WIDTH * HEIGHT / 1e6:.1f} MB: {gradients_mb:.1f} MB of gradients "
+          f"at a stride of {stride} pixels, 8 bytes a kept pixel, and 1 byte of grey a pixel)")
     return 0
 
 
