@@ -5,6 +5,7 @@ chosen messages are decoded; ``calibrate --workers 2`` gives the in-process answ
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -73,8 +74,22 @@ def test_engine_frames_are_the_pairs_built_one_by_one(small_log: Path) -> None:
     config = _config()
     with open_log(small_log) as reader:
         pairs = list(iter_pairs(reader, LIDAR, CAMERA, config.io.pairing_tolerance_ns, max_pairs=3))
-    reference = [build_frame(lidar, camera, config.calibration.feature) for lidar, camera in pairs]
+    reference = [replace(build_frame(lidar, camera, config.calibration.feature), intensity=None)  # GOM: no grey
+                 for lidar, camera in pairs]
     _assert_same(reference, _collect(small_log, None), motion=False)
+
+
+def test_frames_hold_the_equalised_grey_only_for_nmi(small_log: Path) -> None:
+    """The equalised grey is the NMI metric's image term: a GOM calibration's frames do not hold it, an NMI
+    one's hold the whole image's."""
+    assert all(f.intensity is None for f in _collect(small_log, None))
+    config = _config()
+    config.calibration.metric = "nmi"
+    with open_log(small_log) as reader:
+        frames = collect_frames(reader, LIDAR, CAMERA, config, load_tf_tree(reader)).frames
+    assert len(frames) == 3
+    assert all(f.intensity is not None and f.intensity.shape == (96, 160) and f.intensity.dtype == np.uint8
+               for f in frames)
 
 
 def test_calibrate_on_two_workers_gives_the_in_process_answer(

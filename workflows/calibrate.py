@@ -218,14 +218,16 @@ class _ChosenLidarStage:
 
 @dataclass(frozen=True)
 class _ChosenCameraStage:
-    """Engine stage: gradients and grey of the images whose header stamp is in ``stamps_ns`` (others: None),
-    projected with the calibration's camera model (``model``: the client's CameraInfo model of a topic
-    listed as rectified, else the frame's own); the image of ``first_ns`` is kept for overlays."""
+    """Engine stage: gradients (and with ``grey`` the equalised grey) of the images whose header stamp is in
+    ``stamps_ns`` (others: None), projected with the calibration's camera model (``model``: the client's
+    CameraInfo model of a topic listed as rectified, else the frame's own); the image of ``first_ns`` is kept
+    for overlays."""
 
     stamps_ns: frozenset[int]
     first_ns: int
     camera_model: str
     model: CameraModel | None
+    grey: bool
 
     def __call__(self, camera: CameraFrame) -> CameraFeatures | None:
         if camera.stamp_ns not in self.stamps_ns:
@@ -233,7 +235,7 @@ class _ChosenCameraStage:
         camera.camera = with_model(self.model if self.model is not None else camera.camera, self.camera_model)
         if camera.camera is None:
             raise InputError(f"camera {camera.topic} has no CameraInfo in the log (or its K is unusable)")
-        return camera_feature_stage(camera, keep_image=camera.stamp_ns == self.first_ns)
+        return camera_feature_stage(camera, keep_image=camera.stamp_ns == self.first_ns, keep_grey=self.grey)
 
 
 def calibration_engine(config: Config, quiet: bool = True) -> Engine:
@@ -274,7 +276,8 @@ def collect_frames(
         lidar_problems, blank_scans = _problems(engine), engine.stats.skip_reasons.get("no valid points", 0)
         camera_stage = _ChosenCameraStage(frozenset(p.camera_stamp_ns for p in chosen), chosen[0].camera_stamp_ns,
                                           c.camera_model,
-                                          info.model if camera_topic in config.io.rectified_topics else None)
+                                          info.model if camera_topic in config.io.rectified_topics else None,
+                                          grey=c.metric == "nmi")
         images = {r.stamp_ns: r for r in engine.map_frames(
             source, camera_topic, camera_stage, ordered=True, desc="calibration images",
             log_times_ns=[p.camera_log_ns for p in chosen])}

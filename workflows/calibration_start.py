@@ -49,7 +49,7 @@ def rig_motions(reader: LogReader, camera_topic: str, frames: list[CalibrationFr
     lidar's ``T_a_b`` (4, 4) over the same interval from the frame's twist, for the frames (of one camera,
     each with its ``pairs`` entry) that have both."""
     wanted = [(f, p) for f, p in zip(frames, pairs, strict=True)
-              if p.camera_neighbour_log_ns >= 0 and f.twist_at_camera() is not None and f.intensity is not None]
+              if p.camera_neighbour_log_ns >= 0 and f.twist_at_camera() is not None]
     if not wanted:
         return [], np.zeros((0, 4, 4))
     source = LogFrames(reader.paths, config.io.allow_truncated, config.io.max_range_m)
@@ -57,18 +57,19 @@ def rig_motions(reader: LogReader, camera_topic: str, frames: list[CalibrationFr
     engine = Engine(workers=0, quiet=True, warmups=STAGE_WARMUPS) if engine is None else engine
     try:
         greys = dict(engine.map_frames(source, camera_topic, _GreyStage(frozenset(
-            p.camera_neighbour_stamp_ns for _, p in wanted)), ordered=True, desc="initialisation images",
-            log_times_ns=[p.camera_neighbour_log_ns for _, p in wanted]))
+            [p.camera_neighbour_stamp_ns for _, p in wanted] + [p.camera_stamp_ns for _, p in wanted])),
+            ordered=True, desc="initialisation images",
+            log_times_ns=sorted({t for _, p in wanted for t in (p.camera_neighbour_log_ns, p.camera_log_ns)})))
     finally:
         if own:
             engine.close()
     motions, lidar = [], []
     for frame, pair in wanted:
-        other, twist = greys.get(pair.camera_neighbour_stamp_ns), frame.twist_at_camera()
-        if other is None or twist is None:
+        other, grey, twist = (greys.get(pair.camera_neighbour_stamp_ns), greys.get(pair.camera_stamp_ns),
+                              frame.twist_at_camera())
+        if other is None or grey is None or twist is None:
             continue
         earlier = pair.camera_neighbour_stamp_ns < frame.stamp_ns
-        grey = np.asarray(frame.intensity, dtype=np.uint8)
         motion = camera_motion(other, grey, frame.camera) if earlier else camera_motion(grey, other, frame.camera)
         if motion is not None:
             motions.append(motion)

@@ -178,7 +178,7 @@ class CameraFeatures:
         camera: its intrinsics.
         gradients: image gradients after the blur (``stages.image_gradients.compute_image_gradients``), kept
             at the widest stride the blur allows (``stages.image_gradients.sampling_stride``).
-        intensity: (H, W) histogram-equalised grey, uint8 (for NMI).
+        intensity: (H, W) histogram-equalised grey, uint8 (for NMI), or None when the stage was not asked for it.
         image: the decoded image when the stage was asked to keep it (for overlays), else None.
     """
 
@@ -187,7 +187,7 @@ class CameraFeatures:
     frame_id: str
     camera: CameraModel
     gradients: GradientImage
-    intensity: NDArray[np.uint8]
+    intensity: NDArray[np.uint8] | None
     image: NDArray[np.generic] | None = None
 
 
@@ -209,11 +209,11 @@ def lidar_feature_stage(lidar: LidarFrame, feature: str = "range") -> LidarFeatu
 
 
 def camera_feature_stage(camera: CameraFrame, blur_sigma_px: float | None = None,
-                         keep_image: bool = False) -> CameraFeatures:
+                         keep_image: bool = False, keep_grey: bool = True) -> CameraFeatures:
     """Per-frame stage: image gradients of one image after a Gaussian blur (None: ``default_blur_sigma_px``
     of its width), kept at every ``sampling_stride(blur)``-th pixel (what the blur leaves of the image needs no
-    more: a 1920 px image's gradients take a quarter of the memory), and its equalised grey; the image itself
-    only with ``keep_image``.
+    more: a 1920 px image's gradients take a quarter of the memory), and its equalised grey with ``keep_grey``
+    (the NMI metric's image term); the image itself only with ``keep_image``.
 
     Raises:
         ProcessingError: the camera frame has no CameraModel (no CameraInfo in the log).
@@ -225,7 +225,7 @@ def camera_feature_stage(camera: CameraFrame, blur_sigma_px: float | None = None
     sigma = default_blur_sigma_px(camera.width) if blur_sigma_px is None else blur_sigma_px
     grads = subsampled(compute_image_gradients(camera.image, blur_sigma_px=sigma), sampling_stride(sigma))
     return CameraFeatures(camera.stamp_ns, camera.topic, camera.frame_id, camera.camera, grads,
-                          equalised_grey(camera.image), camera.image if keep_image else None)
+                          equalised_grey(camera.image) if keep_grey else None, camera.image if keep_image else None)
 
 
 def equalised_grey(image: NDArray[Any]) -> NDArray[np.uint8]:
