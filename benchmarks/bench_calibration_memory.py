@@ -8,9 +8,10 @@ frame at once (``--joint`` rigs: every camera's too), so this increase times fra
 needs on top of the interpreter. The swarm is cut short (50 particles, 10 iterations, 1 run): its memory
 does not grow with the frames, and the accuracy is not what is measured here.
 
-Measured (2 cores): 293 / 333 / 365 MB at 1 / 4 / 8 frames, 10-13 MB per extra frame: a 1920x1200 image's
+Measured (2 cores): 293 / 328 / 347 MB at 1 / 4 / 8 frames, 8-12 MB per extra frame: a 1920x1200 image's
 gradients are kept at every second pixel (its 3.1 px blur allows it, ``image_gradients.sampling_stride``), 4.6 MB,
-beside its 8-bit grey, 2.3 MB. Kept at every pixel they took 326 / 393 / 482 MB, 22 MB per extra frame.
+and its 8-bit grey only for ``--metric nmi``. With the grey held: 293 / 333 / 365 MB (10-13 MB a frame); with the
+gradients at every pixel as well: 326 / 393 / 482 MB (22 MB a frame).
 
     .venv/bin/python benchmarks/bench_calibration_memory.py [--frames 1 4 8] [--dir /tmp]
 """
@@ -101,8 +102,8 @@ def main() -> int:
         print(f"{n:>8} {used:>5} {seconds:>8.1f} {peak_mb:>12.1f} {per:>19}")
     stride = sampling_stride(default_blur_sigma_px(WIDTH))
     gradients_mb = 8 * (-(-WIDTH // stride)) * (-(-HEIGHT // stride)) / 1e6
-    print(f"(a frame's image part: {gradients_mb + WIDTH * HEIGHT / 1e6:.1f} MB: {gradients_mb:.1f} MB of gradients "
-          f"at a stride of {stride} pixels, 8 bytes a kept pixel, and 1 byte of grey a pixel)")
+    print(f"(a frame's image part: {gradients_mb:.1f} MB of gradients at a stride of {stride} pixels, 8 bytes a kept "
+          f"pixel; with --metric nmi also {WIDTH * HEIGHT / 1e6:.1f} MB of 8-bit grey)")
     return 0
 
 

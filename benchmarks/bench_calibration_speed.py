@@ -131,7 +131,7 @@ def markdown(lines: list[list[str]], quick: bool, wall_s: float) -> str:
         SECTION,
         "",
         "`fleetcal calibrate` chooses its N pairs by their stamps, spread over the log, and runs the per-frame "
-        "work (decoding, lidar feature, image gradients and equalised grey) on the engine for those messages "
+        "work (decoding, lidar feature, image gradients; the equalised grey for NMI) on the engine for those messages "
         "only (in process by default, on dask workers with `--workers N` / `--scheduler`); the search then runs "
         "in the calling process (numba threads over poses).",
         "",
