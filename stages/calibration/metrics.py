@@ -121,6 +121,19 @@ def kept_shape(camera: CameraModel, stride: int) -> tuple[int, int]:
     return (-(-camera.height // stride), -(-camera.width // stride))
 
 
+def _check_kept(shape: tuple[int, ...], camera: CameraModel, stride: int = 1) -> None:
+    """Raise ProcessingError unless an image plane of ``shape`` (H', W'[, C]) is ``camera``'s image kept at
+    every ``stride``-th pixel."""
+    if stride < 1 or tuple(shape[:2]) != kept_shape(camera, stride):
+        raise ProcessingError(_size_message(shape, camera, stride))
+
+
+def _kept_mask(mask: NDArray[np.generic] | None, camera: CameraModel, stride: int) -> NDArray[np.uint8]:
+    """(H', W') uint8 valid mask at the pixels kept at ``stride`` of ``camera``'s whole-image (H, W) ``mask``
+    (None: all valid)."""
+    return np.ascontiguousarray(_mask(mask, (camera.height, camera.width))[::stride, ::stride])
+
+
 def _per_point(values: NDArray[np.floating], n: int, name: str) -> NDArray[np.float64]:
     arr = np.ascontiguousarray(values, dtype=np.float64).ravel()
     if arr.shape[0] != n:
@@ -197,10 +210,8 @@ class GradientPlanes:
         gxy = np.asarray(image_gxy)
         if gxy.ndim != 3 or gxy.shape[2] != 2:
             raise ProcessingError(f"stacked image gradients must be (H, W, 2), got {gxy.shape}")
-        if stride < 1 or gxy.shape[:2] != kept_shape(camera, stride):
-            raise ProcessingError(_size_message(gxy.shape[:2], camera, stride))
-        kept_mask = _mask(mask, (camera.height, camera.width))[::stride, ::stride]
-        return cls(_planes(gxy), np.ascontiguousarray(kept_mask), stride)
+        _check_kept(gxy.shape, camera, stride)
+        return cls(_planes(gxy), _kept_mask(mask, camera, stride), stride)
 
     @property
     def width_px(self) -> int:
@@ -251,8 +262,7 @@ class GomScorer:
         theta = np.arctan2(gy, gx)
         self.c2 = np.ascontiguousarray(np.cos(2 * theta))
         self.s2 = np.ascontiguousarray(np.sin(2 * theta))
-        if image.planes.shape[:2] != kept_shape(camera, image.stride):
-            raise ProcessingError(_size_message(image.planes.shape, camera, image.stride))
+        _check_kept(image.planes.shape, camera, image.stride)
         self.image = image
         self.cam = camera_params(camera, image.stride)
         self.R_gradients = None if R_camera_lidar_gradients is None else np.asarray(
@@ -262,7 +272,8 @@ class GomScorer:
         """This scorer's lidar gradients against other gradient planes of the same camera (e.g.
         ``image.blurred(...)`` for a wider basin)."""
         if image.planes.shape != self.image.planes.shape or image.stride != self.image.stride:
-            raise ProcessingError(f"gradient planes {image.planes.shape} do not match {self.image.planes.shape}")
+            raise ProcessingError(f"gradient planes {image.planes.shape} at stride {image.stride} do not match "
+                                  f"{self.image.planes.shape} at stride {self.image.stride}")
         twin = copy.copy(self)
         twin.image = image
         return twin
@@ -342,10 +353,11 @@ class LevinsonScorer:
         self.points = _points(points_xyz)
         self.weight = _per_point(lidar_weight, self.points.shape[0], "lidar weight")
         img = np.asarray(edge_image)
-        if stride < 1 or img.shape != kept_shape(camera, stride):
-            raise ProcessingError(_size_message(img.shape, camera, stride))
+        if img.ndim != 2:
+            raise ProcessingError(f"edge image must be (H, W), got {img.shape}")
+        _check_kept(img.shape, camera, stride)
         self.planes = _planes(img)
-        self.mask = np.ascontiguousarray(_mask(mask, (camera.height, camera.width))[::stride, ::stride])
+        self.mask = _kept_mask(mask, camera, stride)
         self.cam = camera_params(camera, stride)
         self.scale = 1.0 / max(float(np.sum(self.weight)), 1e-12)
 
