@@ -16,7 +16,8 @@ from fleetcal.pipeline.engine import Engine
 from fleetcal.readers.frames import load_tf_tree
 from fleetcal.readers.open import open_log
 from fleetcal.stages.calibration.frame import CalibrationFrame, build_frame
-from fleetcal.workflows.calibrate import collect_frames
+from fleetcal.workflows import calibrate as calibrate_workflow
+from fleetcal.workflows.calibrate import ScansSeen, collect_frames
 from fleetcal.workflows.cli import main
 from fleetcal.workflows.pairing import iter_pairs
 from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log
@@ -90,6 +91,34 @@ def test_frames_hold_the_equalised_grey_only_for_nmi(small_log: Path) -> None:
     assert len(frames) == 3
     assert all(f.intensity is not None and f.intensity.shape == (96, 160) and f.intensity.dtype == np.uint8
                for f in frames)
+
+
+def test_cameras_of_one_run_share_each_scan(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two cameras pairing with the same scans: the second camera's frames reuse the first's decoded scans
+    (the lidar stage runs once per scan) and hold the same float64 points array, and equal the frames it
+    collects on its own."""
+    log = tmp_path / "two_cameras.mcap"
+    simulate_log(log, SimulationOptions(frames=4, beams=16, columns=256, width=160, height=96, seed=3, cameras=2,
+                                        deskew=False), quiet=True)
+    featured: list[int] = []
+    stage = calibrate_workflow.lidar_feature_stage
+
+    def counted(lidar: object, feature: str = "range") -> object:
+        featured.append(lidar.stamp_ns)  # type: ignore[attr-defined]
+        return stage(lidar, feature)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(calibrate_workflow, "lidar_feature_stage", counted)
+    seen = ScansSeen()
+    with open_log(log) as reader:
+        tree = load_tf_tree(reader)
+        first, second = (collect_frames(reader, LIDAR, f"/camera_{k}/image_raw", _config(), tree, None, seen).frames
+                         for k in range(2))
+        assert len(featured) == len(set(featured)) == 3
+        alone = collect_frames(reader, LIDAR, "/camera_1/image_raw", _config(), tree).frames
+    assert [f.label for f in second] == ["/camera_1/image_raw"] * 3
+    assert all(a.points_xyz is b.points_xyz and a.points_xyz.dtype == np.float64
+               for a, b in zip(first, second, strict=True))
+    _assert_same(alone, second)
 
 
 def test_calibrate_on_two_workers_gives_the_in_process_answer(

@@ -70,6 +70,30 @@ def test_a_log_without_tf_odometry_is_moved_by_fleetcals_odometry(logs: tuple[Pa
         assert np.sqrt(np.mean(gap_m**2)) < 0.03 < 0.5 * np.sqrt(np.mean(moved_m**2)), (gap_m.mean(), moved_m.mean())
 
 
+def test_scans_that_are_each_others_neighbour_share_one_registration(logs: tuple[Path, Path],
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """All 8 scans of the log chosen: the first two are each other's neighbour (the first scan's is the next
+    one), so 7 registrations give the 8 twists, the first two equal."""
+    _, raw = logs
+    registered: list[tuple[int, int]] = []
+    scan_twist = mapping.scan_twist
+
+    def counted(early: mapping.PointSet, late: mapping.PointSet, config: object) -> object:
+        registered.append((early.stamp_ns, late.stamp_ns))
+        return scan_twist(early, late, config)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(mapping, "scan_twist", counted)
+    config = Config()
+    config.calibration.frames = 8
+    config.calibration.feature = "intensity"
+    with open_log(raw) as reader:
+        frames = collect_frames(reader, LIDAR, CAMERA, config, load_tf_tree(reader)).frames
+    assert len(frames) == 8 and len(registered) == len(set(registered)) == 7
+    assert all(early < late for early, late in registered)
+    assert frames[0].twist_lidar is not None and frames[1].twist_lidar is not None
+    np.testing.assert_array_equal(frames[0].twist_lidar, frames[1].twist_lidar)
+
+
 def test_the_odometry_path_moves_whole_scans_by_their_stamp_when_point_times_are_off(logs: tuple[Path, Path]) -> None:
     """``calibration.point_times = false`` (clouds de-skewed by their driver): every point of a scan gets the
     scan stamp's offset to the camera, as on the tf path."""

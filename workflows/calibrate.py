@@ -192,6 +192,16 @@ class _Collected:
     pairs: list[ChosenPair] = field(default_factory=list)  # the pair of each frame
 
 
+@dataclass
+class ScansSeen:
+    """What the scans of one lidar gave to earlier cameras of the same run, so that each scan is decoded,
+    featured and registered once for all the cameras that pair with it."""
+
+    scans: dict[int, Any] = field(default_factory=dict)  # header stamp -> LidarFeatures or _SparseScan
+    points_xyz: dict[int, NDArray[np.float64]] = field(default_factory=dict)  # header stamp -> float64 points
+    twists: dict[tuple[int, int], NDArray[Any] | None] = field(default_factory=dict)  # (early, late) -> twist
+
+
 @dataclass(frozen=True)
 class _SparseScan:
     """What the lidar stage returns for a chosen scan with too few valid points (kept apart from decode
@@ -253,10 +263,12 @@ def collect_frames(
     config: Config,
     tree: TransformTree | None,
     engine: Engine | None = None,
+    seen: ScansSeen | None = None,
 ) -> _Collected:
     """Choose N pairs spread over the log by their header stamps, run the per-frame stages (decoding, lidar
     feature, image gradients) on ``engine`` for those messages only (None: in process), then join each
-    pair with its ego-motion from ``tree``."""
+    pair with its ego-motion from ``tree``. Scans already in ``seen`` (earlier cameras of the run) are not
+    decoded again; what this call decodes is added to it."""
     c = config.calibration
     stats = PairingStats()
     chosen = choose_pairs(reader, lidar_topic, camera_topic, config.io.pairing_tolerance_ns, c.frames, stats=stats)
@@ -268,12 +280,18 @@ def collect_frames(
     source = LogFrames(reader.paths, config.io.allow_truncated, config.io.max_range_m)
     own = engine is None
     engine = Engine(workers=0, quiet=True, warmups=STAGE_WARMUPS) if engine is None else engine
+    seen = ScansSeen() if seen is None else seen
     try:
-        lidar_stage = _ChosenLidarStage(frozenset(p.lidar_stamp_ns for p in chosen), c.feature)
-        scans = {r.stamp_ns if isinstance(r, _SparseScan) else r.lidar.stamp_ns: r for r in engine.map_frames(
-            source, lidar_topic, lidar_stage, ordered=True, desc="calibration scans",
-            log_times_ns=[p.lidar_log_ns for p in chosen])}
-        lidar_problems, blank_scans = _problems(engine), engine.stats.skip_reasons.get("no valid points", 0)
+        new = [p for p in chosen if p.lidar_stamp_ns not in seen.scans]
+        lidar_problems, blank_scans = [], 0
+        if new:
+            lidar_stage = _ChosenLidarStage(frozenset(p.lidar_stamp_ns for p in new), c.feature)
+            seen.scans.update({r.stamp_ns if isinstance(r, _SparseScan) else r.lidar.stamp_ns: r
+                               for r in engine.map_frames(source, lidar_topic, lidar_stage, ordered=True,
+                                                          desc="calibration scans",
+                                                          log_times_ns=[p.lidar_log_ns for p in new])})
+            lidar_problems, blank_scans = _problems(engine), engine.stats.skip_reasons.get("no valid points", 0)
+        scans = {p.lidar_stamp_ns: seen.scans[p.lidar_stamp_ns] for p in chosen if p.lidar_stamp_ns in seen.scans}
         camera_stage = _ChosenCameraStage(frozenset(p.camera_stamp_ns for p in chosen), chosen[0].camera_stamp_ns,
                                           c.camera_model,
                                           info.model if camera_topic in config.io.rectified_topics else None,
@@ -282,13 +300,13 @@ def collect_frames(
             source, camera_topic, camera_stage, ordered=True, desc="calibration images",
             log_times_ns=[p.camera_log_ns for p in chosen])}
         problems = lidar_problems + _problems(engine)
-        twists = _odometry_twists(engine, source, lidar_topic, chosen, scans, config, tree)
+        twists = _odometry_twists(engine, source, lidar_topic, chosen, scans, config, tree, seen.twists)
     finally:
         if own:
             engine.close()
     for message in problems:
         log.warning("skipping an undecodable frame on %s", message)
-    return _joined(chosen, scans, images, config, tree, lidar_topic, problems, blank_scans, twists)
+    return _joined(chosen, scans, images, config, tree, lidar_topic, problems, blank_scans, twists, seen.points_xyz)
 
 
 def _problems(engine: Engine) -> list[str]:
@@ -298,38 +316,45 @@ def _problems(engine: Engine) -> list[str]:
 
 
 def _odometry_twists(engine: Engine, source: LogFrames, lidar_topic: str, chosen: list[ChosenPair],
-                     scans: dict[int, Any], config: Config, tree: TransformTree | None) -> dict[int, NDArray[Any]]:
+                     scans: dict[int, Any], config: Config, tree: TransformTree | None,
+                     registered: dict[tuple[int, int], NDArray[Any] | None]) -> dict[int, NDArray[Any]]:
     """Lidar stamp -> the lidar's twist (6,) at each chosen scan from fleetcal's own odometry, for a log whose
     tf does not move the lidar (else, or with motion compensation off: empty): each chosen scan registered
-    (plain GICP with the mapping settings) onto the scan next to it in the log."""
+    (plain GICP with the mapping settings) onto the scan next to it in the log, once per two scans
+    (``registered``: (early, late) header stamps -> twist or None, filled here and reused)."""
     scan = next((s for s in scans.values() if isinstance(s, LidarFeatures)), None)
     if not config.calibration.motion_compensation or scan is None:
         return {}
     if has_odometry(tree, scan.lidar.frame_id.lstrip("/")):
         return {}
-    wanted = [p for p in chosen if p.neighbour_log_ns >= 0 and isinstance(scans.get(p.lidar_stamp_ns), LidarFeatures)]
+    wanted = [p for p in chosen if p.neighbour_log_ns >= 0 and isinstance(scans.get(p.lidar_stamp_ns), LidarFeatures)
+              and tuple(sorted((p.lidar_stamp_ns, p.neighbour_stamp_ns))) not in registered]
     reg = mapping.ego_motion_registration(config)
     times = sorted({p.lidar_log_ns for p in wanted} | {p.neighbour_log_ns for p in wanted})
-    sets = {ps.stamp_ns: ps for ps in engine.map_frames(source, lidar_topic, partial(mapping.prepare_scan, config=reg),
-                                                         desc="calibration odometry", log_times_ns=times)}
-    twists: dict[int, NDArray[Any]] = {}
+    sets = ({ps.stamp_ns: ps for ps in engine.map_frames(source, lidar_topic, partial(mapping.prepare_scan, config=reg),
+                                                          desc="calibration odometry", log_times_ns=times)}
+            if times else {})
     for pair in wanted:
         here, there = sets.get(pair.lidar_stamp_ns), sets.get(pair.neighbour_stamp_ns)
         if here is None or there is None:
             continue
-        early, late = (there, here) if pair.neighbour_stamp_ns < pair.lidar_stamp_ns else (here, there)
-        twist = mapping.scan_twist(early, late, reg)
+        early, late = sorted((here, there), key=lambda s: s.stamp_ns)
+        key = (early.stamp_ns, late.stamp_ns)
+        if key not in registered:  # two chosen scans that are each other's neighbour share one registration
+            registered[key] = mapping.scan_twist(early, late, reg)
+            if registered[key] is None:
+                log.warning("no odometry for the scans at %d and %d: their registration failed", *key)
+    twists: dict[int, NDArray[Any]] = {}
+    for pair in chosen:
+        twist = registered.get(tuple(sorted((pair.lidar_stamp_ns, pair.neighbour_stamp_ns))))  # type: ignore[arg-type]
         if twist is not None:
             twists[pair.lidar_stamp_ns] = twist
-        else:
-            log.warning("no odometry for the scan at %d: its registration with the scan at %d failed",
-                        pair.lidar_stamp_ns, pair.neighbour_stamp_ns)
     return twists
 
 
 def _joined(chosen: list[ChosenPair], scans: dict[int, Any], images: dict[int, CameraFeatures], config: Config,
             tree: TransformTree | None, lidar_topic: str, skips: list[str], blank_scans: int,
-            twists: dict[int, NDArray[Any]]) -> _Collected:
+            twists: dict[int, NDArray[Any]], points_xyz: dict[int, NDArray[np.float64]]) -> _Collected:
     """The chosen pairs whose scan and image came back, joined with their ego-motion from ``tree``, else
     from ``twists`` (fleetcal's odometry, ``_odometry_twists``) (``blank_scans``: chosen scans without a valid
     point, skipped by the engine)."""
@@ -354,9 +379,11 @@ def _joined(chosen: list[ChosenPair], scans: dict[int, Any], images: dict[int, C
             out.motion_source = "odometry"
         elif motion is not None or sweep is not None:
             out.motion_source = "tf"
-        frame = replace(join_frame(scan, image, T_lidar_motion=motion), readout_s=c.readout_of(image.topic),
-                        camera_twist_lidar=camera_twist(tree, out.lidar_frame, image.stamp_ns) if motion is not None
-                        else None)
+        if pair.lidar_stamp_ns not in points_xyz:  # one float64 copy of a scan for all its cameras
+            points_xyz[pair.lidar_stamp_ns] = np.asarray(scan.lidar.points_xyz, dtype=np.float64)
+        twist_at_camera = camera_twist(tree, out.lidar_frame, image.stamp_ns) if motion is not None else None
+        frame = replace(join_frame(scan, image, T_lidar_motion=motion, points_xyz=points_xyz[pair.lidar_stamp_ns]),
+                        readout_s=c.readout_of(image.topic), camera_twist_lidar=twist_at_camera)
         if sweep is not None:
             frame = replace(frame, point_time_offsets_s=sweep[0], twist_lidar=sweep[1])
         out.frames.append(frame)
@@ -477,8 +504,9 @@ def run_calibration(
         if topic not in reader.topics:
             log.warning("rectified topic %s is not in the log: ignored", topic)
     collected: dict[str, _Collected] = {}
+    seen = ScansSeen()  # each scan decoded once for every camera
     for topic in camera_topics:
-        collected[topic] = collect_frames(reader, lidar_topic, topic, config, tree, engine)
+        collected[topic] = collect_frames(reader, lidar_topic, topic, config, tree, engine, seen)
     if joint and len(camera_topics) > 1:
         return _calibrate_joint(reader, lidar_topic, camera_topics, collected, (tree, tf_problem), initial, config,
                                 quiet, engine)

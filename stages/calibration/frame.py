@@ -238,10 +238,12 @@ def equalised_grey(image: NDArray[Any]) -> NDArray[np.uint8]:
 
 
 def join_frame(lidar: LidarFeatures, camera: CameraFeatures, T_camera_camera0: Mat4 | None = None,
-               T_lidar_motion: Mat4 | None = None) -> CalibrationFrame:
-    """The CalibrationFrame of one lidar scan's and one image's per-frame results."""
+               T_lidar_motion: Mat4 | None = None, points_xyz: NDArray[np.float64] | None = None) -> CalibrationFrame:
+    """The CalibrationFrame of one lidar scan's and one image's per-frame results; ``points_xyz``: the scan's
+    points as float64 where the caller holds them already (one array for every camera of the scan)."""
     return CalibrationFrame(
-        points_xyz=np.asarray(lidar.lidar.points_xyz, dtype=np.float64), feature=lidar.feature,
+        points_xyz=np.asarray(lidar.lidar.points_xyz if points_xyz is None else points_xyz, dtype=np.float64),
+        feature=lidar.feature,
         camera=camera.camera, gradients=camera.gradients, intensity=camera.intensity,
         T_camera_camera0=np.eye(4) if T_camera_camera0 is None else np.asarray(T_camera_camera0),
         T_lidar_motion=T_lidar_motion, stamp_ns=camera.stamp_ns, label=camera.topic)
