@@ -35,11 +35,14 @@ def _channels(seed: int = 0) -> tuple[np.ndarray, list[GomScorer], GradientPlane
 def test_channels_and_twins_in_one_pass_equal_their_own_scorers() -> None:
     selections, scorers, image = _channels()
     blurred = image.blurred(3.0)
+    thinned = image.blurred_along(np.array([0.3, 1.0]), 9.0, thinned=True)  # 17 deg off v: kept at 1 x 3 pixels
+    assert thinned.strides == (1, 3)
     T = _poses(16, 7)
     for chosen, channels, twin in ((selections, scorers, None), (selections, scorers, blurred),
-                                   (selections[:1], scorers[:1], blurred)):  # fmt: skip
+                                   (selections[:1], scorers[:1], blurred), (selections, scorers, thinned),
+                                   (selections[:1], scorers[:1], thinned)):  # fmt: skip
         together = GomChannels(chosen, channels, twin).score(T)
-        alone = [s.score(T) for s in channels] + ([s.against(blurred).score(T) for s in channels] if twin else [])
+        alone = [s.score(T) for s in channels] + ([s.against(twin).score(T) for s in channels] if twin else [])
         assert len(together) == len(alone)
         for a, b in zip(together, alone, strict=True):
             np.testing.assert_array_equal(a.counts, b.counts)

@@ -85,8 +85,13 @@ def test_parquet_contract(processed: Path) -> None:
     result = json.loads((processed / "result.json").read_text())["calibrations"][0]
     assert calib.loc[0, "verdict"] == result["verdict"] and calib.loc[0, "initialisation"] == "tf"
     assert calib.loc[0, "initial_candidates"] == 0
-    stds = calib.loc[0, ["std_rx_deg", "std_ry_deg", "std_rz_deg", "std_tx_m", "std_ty_m", "std_tz_m"]]
-    assert np.all(stds.to_numpy(dtype=float) > 0)  # at least the scan's sampling cell
+    rotation = calib.loc[0, ["std_rx_deg", "std_ry_deg", "std_rz_deg"]].to_numpy(dtype=float)
+    translation = calib.loc[0, ["std_tx_m", "std_ty_m", "std_tz_m"]].to_numpy(dtype=float)
+    assert np.all(rotation > 0)  # at least the scan's sampling cell
+    if result["translation_held"]:  # the initial translation kept: no deviation of it
+        assert np.all(np.isnan(translation))
+    else:
+        assert np.all(translation > 0)
     assert np.isnan(calib.loc[0, "time_offset_s"]) and calib.loc[0, "motion_source"] in ("tf", "none")
     q = calib.loc[0, ["qx", "qy", "qz", "qw"]].to_numpy(dtype=float)
     assert abs(np.linalg.norm(q) - 1) < 1e-9
@@ -206,12 +211,15 @@ def test_clock_offset_of_a_straight_steady_drive_is_reported_unobservable(
     offset is a translation along the drive and nothing in the log tells it apart; the result says so rather
     than give a number, and the translation's deviation grows by the offset range times the speed."""
     out = tmp_path / "clock"
-    code = main(["calibrate", str(sim_log), "--config", str(sim_log.parent / "small.toml"), "--out", str(out),
+    config = tmp_path / "estimate.toml"  # the small solver, the translation always estimated (never held)
+    config.write_text(SMALL_CONFIG.replace("[calibration]\n", "[calibration]\ntranslation = \"estimate\"\n"))
+    code = main(["calibrate", str(sim_log), "--config", str(config), "--out", str(out),
                  "--json", "-q", "--no-report", "--time-offset", "estimate"])  # fmt: skip
     assert code == 0
     pair = json.loads(capsys.readouterr().out)["pairs"][0]
     assert pair["time_offset_s"] == pair["time_offset_std_s"] == "unobservable"
     assert pair["readout_s"] == 0.0 and pair["readout_std_s"] is None and pair["motion_source"] == "tf"
+    assert not pair["translation_held"]
     row = pq.read_table(out / "calibration.parquet").to_pylist()[0]
     assert np.isnan(row["time_offset_s"]) and np.isinf(row["time_offset_std_s"])
     assert row["std_tz_m"] > 0.05 * 8.0 / np.sqrt(3) * 0.9  # +-50 ms at 8 m/s along the optical axis

@@ -33,7 +33,8 @@ class GomChannels:
         channels: the C (1 or 2) channels' scorers (``GomScorer``), all against the same gradient planes,
             camera and gradient rotation.
         twin_planes: other gradient planes of the same camera the channels are also scored against (their
-            ``GomScorer.against`` twins), or None.
+            ``GomScorer.against`` twins), kept at the same or wider strides (``GradientPlanes.blurred_along``
+            thinned), or None.
     """
 
     def __init__(self, selections: NDArray[np.bool_], channels: list[GomScorer],
@@ -59,7 +60,11 @@ class GomChannels:
         self.points = points
         self.member = member.astype(np.uint8)
         self.n_channels = len(channels)
+        if twin_planes is not None:
+            first.against(twin_planes)  # the twin's size checked against the camera at its strides
         self.planes = [first.image] + ([twin_planes] if twin_planes is not None else [])
+        # the twin's pixel per pixel of the frame's planes, along u and v (twins kept at a wider stride)
+        self.scale1 = np.array(first.image.strides, dtype=np.float64) / np.array(self.planes[-1].strides)
         self.cam = first.cam
         self.R_gradients = first.R_gradients
 
@@ -68,11 +73,11 @@ class GomChannels:
         """Each scorer's ``MetricBatch``: the channels against the frame's planes, then against the twin
         planes (the order of the frame's scorer list)."""
         poses = pose_batch(T_camera_lidar_batch)
-        second = self.planes[-1].planes
+        first, second = self.planes[0], self.planes[-1]
         num, den, count = mk.gom_pair_batch_kernel(
-            self.points, self.c2, self.s2, self.magnitude, self.member, self.planes[0].planes, second,
-            len(self.planes), self.planes[0].mask, self.cam, poses, focal_batch(focal_scale, poses.shape[0]),
-            roll_turns(poses, self.R_gradients))  # fmt: skip
+            self.points, self.c2, self.s2, self.magnitude, self.member, first.planes, second.planes,
+            len(self.planes), first.mask, second.mask, self.scale1, self.cam, poses,
+            focal_batch(focal_scale, poses.shape[0]), roll_turns(poses, self.R_gradients))  # fmt: skip
         with np.errstate(divide="ignore", invalid="ignore"):
             gom = np.where(den > 0, num / (2.0 * den), 0.0)
         return [MetricBatch(np.ascontiguousarray(gom[:, k, ch]), np.ascontiguousarray(count[:, k, ch]))

@@ -296,22 +296,28 @@ def _pair_terms(planes: np.ndarray, u: float, v: float, i: int, in0: bool, in1: 
 @njit(**_BATCH_FLAGS)
 def gom_pair_batch_kernel(points: np.ndarray, lidar_c2: np.ndarray, lidar_s2: np.ndarray, lidar_mag: np.ndarray,
                           member: np.ndarray, planes0: np.ndarray, planes1: np.ndarray, n_planes: int,
-                          mask: np.ndarray, cam: np.ndarray, poses: np.ndarray, focal_scale: np.ndarray,
+                          mask: np.ndarray, mask1: np.ndarray, scale1: np.ndarray, cam: np.ndarray,
+                          poses: np.ndarray, focal_scale: np.ndarray,
                           roll2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``gom_batch_kernel`` of two feature channels of one scan against ``n_planes`` (1 or 2) gradient planes
     of one camera in one pass: each point is projected once per pose and each plane sampled once, whichever
     channels hold the point.
 
     ``points`` (N, 3) is the union of the channels' points; ``lidar_c2, lidar_s2, lidar_mag`` and ``member``
-    are (N, 2): a channel's values at the points it holds (``member`` 1). ``planes1`` is read only when
-    ``n_planes`` is 2. Returns ``(sum mu * alpha, sum mu, projected points)``, each (P, 2, 2) (plane, channel);
-    per channel and plane they are ``gom_batch_kernel``'s sums on that channel's points alone, added in the
-    same order.
+    are (N, 2): a channel's values at the points it holds (``member`` 1). ``planes1`` and its valid ``mask1``
+    are read only when ``n_planes`` is 2; their pixel is planes0's (u, v) times ``scale1`` (2,) (planes kept
+    at a wider stride: planes0's stride over theirs, per axis). Returns ``(sum mu * alpha, sum mu, projected
+    points)``, each (P, 2, 2) (plane, channel); per channel and plane they are ``gom_batch_kernel``'s sums on
+    that channel's points alone (``cam`` scaled to each plane's pixels), added in the same order.
     """
     n_pose = poses.shape[0]
     n = points.shape[0]
     height = planes0.shape[0]
     width = planes0.shape[1]
+    height1 = planes1.shape[0]
+    width1 = planes1.shape[1]
+    su = scale1[0]
+    sv = scale1[1]
     num = np.zeros((n_pose, 2, 2))
     den = np.zeros((n_pose, 2, 2))
     count = np.zeros((n_pose, 2, 2), dtype=np.int64)
@@ -347,7 +353,11 @@ def gom_pair_batch_kernel(points: np.ndarray, lidar_c2: np.ndarray, lidar_s2: np
             c01 += in1
             if n_planes < 2:
                 continue
-            a0, w0, a1, w1 = _pair_terms(planes1, u, v, i, in0, in1, lidar_c2, lidar_s2, lidar_mag, cr, sr)
+            u1 = u * su
+            v1 = v * sv
+            if not _in_view(u1, v1, width1, height1, mask1):
+                continue
+            a0, w0, a1, w1 = _pair_terms(planes1, u1, v1, i, in0, in1, lidar_c2, lidar_s2, lidar_mag, cr, sr)
             n10 += a0
             d10 += w0
             n11 += a1

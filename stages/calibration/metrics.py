@@ -12,6 +12,7 @@ candidate extrinsics in one numba call (parallel over poses). Higher is better f
 from __future__ import annotations
 
 import copy
+import functools
 from dataclasses import dataclass
 from typing import Literal
 
@@ -40,9 +41,10 @@ class MetricBatch:
     counts: NDArray[np.int64]
 
 
-def camera_params(camera: CameraModel, stride: int = 1) -> NDArray[np.float64]:
+def camera_params(camera: CameraModel, stride: int = 1, row_stride: int | None = None) -> NDArray[np.float64]:
     """Pack a CameraModel into the (16,) float64 layout the kernels read (see ``metric_kernels``), in pixels of
-    an image kept at every ``stride``-th pixel (its pixel (j, i) is the image's (j * stride, i * stride)).
+    an image kept at every ``stride``-th column and ``row_stride``-th row (None: ``stride``; its pixel (j, i) is
+    the image's (j * stride, i * row_stride)).
 
     Raises:
         ProcessingError: the camera has a rectification rotation, which the kernels do not apply (fold
@@ -56,7 +58,9 @@ def camera_params(camera: CameraModel, stride: int = 1) -> NDArray[np.float64]:
         # all coefficients zero (a rectified image: KITTI, nuScenes): the pinhole projection, exactly, without
         # the distortion polynomial per point (a third of a GOM evaluation on KITTI)
         cam[0] = mk.MODEL_NONE
-    cam[1:6] = np.array([camera.fx, camera.fy, camera.cx, camera.cy, camera.K[0, 1]]) / stride
+    row_stride = stride if row_stride is None else row_stride
+    cam[1:6] = np.array([camera.fx / stride, camera.fy / row_stride, camera.cx / stride, camera.cy / row_stride,
+                         camera.K[0, 1] / stride])
     cam[6:14] = camera.coefficients(8)
     cam[14] = np.inf
     if camera.distortion_model in ("plumb_bob", "rational_polynomial") and np.any(camera.D):
@@ -102,35 +106,48 @@ def _planes(image: NDArray[np.floating], dtype: type[np.floating] = np.float32) 
     return np.ascontiguousarray(arr)
 
 
+@functools.lru_cache(maxsize=16)
+def _all_valid(shape: tuple[int, int]) -> NDArray[np.uint8]:
+    """An (H, W) uint8 mask of ones, one per shape for every frame without a mask of its own (a 40-frame
+    six-camera rig held 240 copies, 86 MB). Shared: never written (left writeable because numba compiles
+    its kernels again for read-only arrays)."""
+    return np.ones(shape, dtype=np.uint8)
+
+
 def _mask(mask: NDArray[np.generic] | None, shape: tuple[int, int]) -> NDArray[np.uint8]:
     if mask is None:
-        return np.ones(shape, dtype=np.uint8)
+        return _all_valid(shape)
     m = np.ascontiguousarray(np.asarray(mask) != 0, dtype=np.uint8)
     if m.shape != shape:
         raise ProcessingError(f"valid mask {m.shape} does not match image {shape}")
     return m
 
 
-def _size_message(shape: tuple[int, ...], camera: CameraModel, stride: int = 1) -> str:
-    kept = f" kept at a stride of {stride} pixels" if stride > 1 else ""
+def _size_message(shape: tuple[int, ...], camera: CameraModel, stride: int = 1, row_stride: int | None = None) -> str:
+    strides = f"{stride}" if row_stride in (None, stride) else f"{stride} x {row_stride}"
+    kept = f" kept at a stride of {strides} pixels" if max(stride, row_stride or stride) > 1 else ""
     return f"image {shape[1]}x{shape[0]} does not match camera {camera.width}x{camera.height}{kept}"
 
 
-def kept_shape(camera: CameraModel, stride: int) -> tuple[int, int]:
-    """(rows, columns) of an image of ``camera`` kept at every ``stride``-th pixel (``image[::stride, ::stride]``)."""
-    return (-(-camera.height // stride), -(-camera.width // stride))
+def kept_shape(camera: CameraModel, stride: int, row_stride: int | None = None) -> tuple[int, int]:
+    """(rows, columns) of an image of ``camera`` kept at every ``stride``-th column and ``row_stride``-th row
+    (None: ``stride``; ``image[::row_stride, ::stride]``)."""
+    row_stride = stride if row_stride is None else row_stride
+    return (-(-camera.height // row_stride), -(-camera.width // stride))
 
 
-def _check_kept(shape: tuple[int, ...], camera: CameraModel, stride: int = 1) -> None:
+def _check_kept(shape: tuple[int, ...], camera: CameraModel, stride: int = 1, row_stride: int | None = None) -> None:
     """Raise ProcessingError unless an image plane of ``shape`` (H', W'[, C]) is ``camera``'s image kept at
-    every ``stride``-th pixel."""
-    if stride < 1 or tuple(shape[:2]) != kept_shape(camera, stride):
-        raise ProcessingError(_size_message(shape, camera, stride))
+    every ``stride``-th column and ``row_stride``-th row (None: ``stride``)."""
+    if min(stride, row_stride or stride) < 1 or tuple(shape[:2]) != kept_shape(camera, stride, row_stride):
+        raise ProcessingError(_size_message(shape, camera, stride, row_stride))
 
 
 def _kept_mask(mask: NDArray[np.generic] | None, camera: CameraModel, stride: int) -> NDArray[np.uint8]:
     """(H', W') uint8 valid mask at the pixels kept at ``stride`` of ``camera``'s whole-image (H, W) ``mask``
     (None: all valid)."""
+    if mask is None:
+        return _all_valid(kept_shape(camera, stride))
     return np.ascontiguousarray(_mask(mask, (camera.height, camera.width))[::stride, ::stride])
 
 
@@ -186,11 +203,15 @@ class GradientPlanes:
             pixel: ``planes[i, j]`` is the image's pixel (u, v) = (j * stride, i * stride).
         mask: (H', W') uint8, 1 where the image is valid, at the same pixels.
         stride: pixels of the image per kept pixel, along rows and columns.
+        row_stride: pixels of the image per kept row where it differs from ``stride`` (planes smoothed along
+            one direction and thinned, ``blurred_along``): ``planes[i, j]`` is then the image's
+            (j * stride, i * row_stride). None: ``stride``.
     """
 
     planes: NDArray[np.floating]
     mask: NDArray[np.uint8]
     stride: int = 1
+    row_stride: int | None = None
 
     @classmethod
     def of(cls, image_gx: NDArray[np.floating], image_gy: NDArray[np.floating], camera: CameraModel,
@@ -218,28 +239,84 @@ class GradientPlanes:
         """Width of the image the planes were kept from, to within ``stride`` pixels."""
         return int(self.planes.shape[1]) * self.stride
 
+    @property
+    def strides(self) -> tuple[int, int]:
+        """Pixels of the image per kept column and per kept row."""
+        return self.stride, self.stride if self.row_stride is None else self.row_stride
+
+    def _square_stride(self) -> int:
+        """The stride of planes kept at one stride along rows and columns (the blurs below assume it)."""
+        if self.strides[0] != self.strides[1]:
+            raise ProcessingError(f"planes kept at {self.strides[0]} x {self.strides[1]} pixels cannot be blurred "
+                                  "again")
+        return self.stride
+
     def blurred(self, sigma_px: float) -> GradientPlanes:
         """The gradients smoothed by a Gaussian of ``sigma_px`` image pixels (equal to the gradients of the
         image blurred by it: both are linear filters); same mask and stride."""
-        sigma = sigma_px / self.stride
+        sigma = sigma_px / self._square_stride()
         planes = np.stack([cv2.GaussianBlur(self.planes[:, :, c], (0, 0), sigma) for c in range(2)], axis=2)
         return GradientPlanes(np.ascontiguousarray(planes), self.mask, self.stride)
 
-    def blurred_along(self, direction_uv: NDArray[np.floating], sigma_px: float) -> GradientPlanes:
+    def blurred_along(self, direction_uv: NDArray[np.floating], sigma_px: float,
+                      thinned: bool = False) -> GradientPlanes:
         """The gradients smoothed by a one-dimensional Gaussian of ``sigma_px`` image pixels along the image
-        direction ``direction_uv`` (2,) (e.g. across a lidar's rings) and not across it; same mask and stride."""
-        sigma_px = sigma_px / self.stride
+        direction ``direction_uv`` (2,) (e.g. across a lidar's rings) and not across it; same mask and stride.
+
+        ``thinned``: kept only at every k-th column and l-th row of these planes, the widest that this blur
+        and the least blur the planes' own stride implies (``least_blur_px``) together allow
+        (``blur_thinning``): smoothed by 10 px across near-horizontal rings, planes kept at every second pixel
+        keep every eighth row."""
+        stride = self._square_stride()
         d = np.asarray(direction_uv, dtype=np.float64)
         d = d / np.linalg.norm(d)
-        half = max(1, int(np.ceil(3.0 * sigma_px)))
+        sigma = sigma_px / stride
+        half = max(1, int(np.ceil(3.0 * sigma)))
         du, dv = np.meshgrid(np.arange(-half, half + 1.0), np.arange(-half, half + 1.0))
         along = du * d[0] + dv * d[1]
         across = np.abs(du * -d[1] + dv * d[0])
-        kernel = np.exp(-0.5 * (along / sigma_px) ** 2) * np.maximum(0.0, 1.0 - across)  # line, 1 px wide
+        kernel = np.exp(-0.5 * (along / sigma) ** 2) * np.maximum(0.0, 1.0 - across)  # line, 1 px wide
         kernel /= kernel.sum()
         planes = np.stack([cv2.filter2D(self.planes[:, :, c], -1, kernel, borderType=cv2.BORDER_REFLECT)
                            for c in range(2)], axis=2)
-        return GradientPlanes(np.ascontiguousarray(planes), self.mask, self.stride)
+        if not thinned:
+            return GradientPlanes(np.ascontiguousarray(planes), self.mask, stride)
+        k, rows = blur_thinning(d, sigma_px, least_blur_px(stride), stride)
+        return GradientPlanes(np.ascontiguousarray(planes[::rows, ::k]), _thinned_mask(self.mask, k, rows),
+                              stride * k, stride * rows)
+
+
+def least_blur_px(stride: int) -> float:
+    """The least Gaussian blur (sigma, image pixels) of an image whose gradients ``sampling_stride`` keeps at
+    ``stride`` pixels: sigma = stride sqrt(2 ln 1000) / pi (1.18 px at stride 1)."""
+    return float(stride * np.sqrt(2.0 * np.log(1000.0)) / np.pi)
+
+
+def blur_thinning(direction_uv: NDArray[np.float64], sigma_px: float, blur_px: float, stride: int) -> tuple[int, int]:
+    """(k, l): every k-th column and l-th row of planes kept at ``stride`` image pixels is all an image needs
+    once blurred by an isotropic Gaussian of ``blur_px`` and a one-dimensional one of ``sigma_px`` along the unit
+    ``direction_uv`` (image pixels). Together they are a Gaussian of covariance S = blur^2 I + sigma^2 d d^T;
+    its response on the columns' Nyquist line (any row frequency) peaks as that of a Gaussian of variance
+    det S / S_vv (the rows': det S / S_uu), so each is kept at that Gaussian's ``sampling_stride``, a multiple
+    of ``stride``. Across near-horizontal rings (d = (0, 1)) the rows take the stride of sqrt(blur^2 + sigma^2),
+    the columns that of the blur alone; a diagonal d thins both, less."""
+    from fleetcal.stages.image_gradients import sampling_stride
+
+    S = blur_px**2 * np.eye(2) + sigma_px**2 * np.outer(direction_uv, direction_uv)
+    det = float(np.linalg.det(S))
+    columns = sampling_stride(float(np.sqrt(det / S[1, 1])))
+    rows = sampling_stride(float(np.sqrt(det / S[0, 0])))
+    return max(1, columns // stride), max(1, rows // stride)
+
+
+def _thinned_mask(mask: NDArray[np.uint8], k: int, rows: int) -> NDArray[np.uint8]:
+    """``mask`` at every k-th column and ``rows``-th row (the shared all-valid mask stays shared)."""
+    if k == rows == 1:
+        return mask
+    thinned_shape = (-(-mask.shape[0] // rows), -(-mask.shape[1] // k))
+    if mask is _all_valid((int(mask.shape[0]), int(mask.shape[1]))):
+        return _all_valid(thinned_shape)
+    return np.ascontiguousarray(mask[::rows, ::k])
 
 
 class GomScorer:
@@ -262,20 +339,20 @@ class GomScorer:
         theta = np.arctan2(gy, gx)
         self.c2 = np.ascontiguousarray(np.cos(2 * theta))
         self.s2 = np.ascontiguousarray(np.sin(2 * theta))
-        _check_kept(image.planes.shape, camera, image.stride)
+        _check_kept(image.planes.shape, camera, *image.strides)
         self.image = image
-        self.cam = camera_params(camera, image.stride)
+        self.camera = camera
+        self.cam = camera_params(camera, *image.strides)
         self.R_gradients = None if R_camera_lidar_gradients is None else np.asarray(
             R_camera_lidar_gradients, dtype=np.float64).reshape(3, 3)
 
     def against(self, image: GradientPlanes) -> GomScorer:
         """This scorer's lidar gradients against other gradient planes of the same camera (e.g.
-        ``image.blurred(...)`` for a wider basin)."""
-        if image.planes.shape != self.image.planes.shape or image.stride != self.image.stride:
-            raise ProcessingError(f"gradient planes {image.planes.shape} at stride {image.stride} do not match "
-                                  f"{self.image.planes.shape} at stride {self.image.stride}")
+        ``image.blurred(...)`` for a wider basin), kept at their own strides."""
+        _check_kept(image.planes.shape, self.camera, *image.strides)
         twin = copy.copy(self)
         twin.image = image
+        twin.cam = camera_params(self.camera, *image.strides)
         return twin
 
     def subset(self, index: NDArray[np.int64]) -> GomScorer:

@@ -229,7 +229,7 @@ class CalibrationProblem:
         for f, T_c_c0, ring in zip(frames, self.T_camera_camera0, self.ring_spacing_rad, strict=True):
             scorers, n, selections = self._prepare(f, T_c_c0 @ T0)
             sigma_px, across = self._ring_smoothing(f, T_c_c0 @ T0, ring)
-            smoothed = partial(GradientPlanes.blurred_along, direction_uv=across, sigma_px=sigma_px)
+            smoothed = partial(GradientPlanes.blurred_along, direction_uv=across, sigma_px=sigma_px, thinned=True)
             twins = gom_twins(scorers, smoothed) if sigma_px > 0 else []
             self.full.scorers.append(scorers + twins)
             self.full.channels.append(len(scorers))
