@@ -117,3 +117,24 @@ def test_field_moves_points_as_the_screw_motion_does_to_first_order(scenes: list
     p = field.base_points[0][0][0][:50]
     moved_by_mean = screw_apply(shared_twist, np.full(p.shape[0], m), p)
     np.testing.assert_allclose(apply(C, moved_by_mean), p, atol=1e-3)
+
+
+def test_no_shift_leaves_the_scorers_and_their_one_pass_as_they_are(scenes: list[CalibrationFrame]) -> None:
+    """Moving frames seen by global shutters (readout 0) under no clock offset: nothing moves, so the scorers
+    keep their own point arrays and their one-pass scorers are not rebuilt (no copy of every point); after a
+    shift, no shift gives back the unshifted arrays themselves."""
+    frames = [dataclasses.replace(f, camera_twist_lidar=tw, readout_s=0.0) for f, tw in zip(scenes[:2], TWISTS[:2],
+                                                                                              strict=True)]
+    problem = CalibrationProblem(frames, true_T_camera_lidar(), CONFIG)
+    field = TimeShiftField(problem, [f.camera_twist_lidar for f in frames], [0.0, 0.0])
+    fractions = field.row_fractions(np.zeros(problem.dim))
+    scorers, together = [list(frame) for frame in problem.scorers], list(problem.together)
+    field.apply(TimeShift(), fractions)
+    assert all(a is b for frame, old in zip(problem.scorers, scorers, strict=True)
+               for a, b in zip(frame, old, strict=True))
+    assert all(a is b for a, b in zip(problem.together, together, strict=True))
+    field.apply(TimeShift(offset_s=0.01), fractions)
+    assert not np.array_equal(problem.scorers[0][0].points, field.base_points[0][0][0])
+    field.apply(TimeShift(), fractions)
+    assert all(s.points is p for frame, base in zip(problem.scorers, field.base_points[0], strict=True)
+               for s, p in zip(frame, base, strict=True))

@@ -486,6 +486,14 @@ def _log_tf(reader: LogReader) -> tuple[TransformTree | None, str | None]:
     return tree, problem
 
 
+def _collect_cameras(reader: LogReader, lidar_topic: str, camera_topics: list[str], config: Config,
+                     tree: TransformTree | None, engine: Engine | None) -> dict[str, _Collected]:
+    """``collect_frames`` of every camera, each scan decoded once for all of them; the decoded scans are let go
+    once the frames are joined (the frames keep their points and features only)."""
+    seen = ScansSeen()
+    return {topic: collect_frames(reader, lidar_topic, topic, config, tree, engine, seen) for topic in camera_topics}
+
+
 def run_calibration(
     reader: LogReader,
     lidar_topic: str,
@@ -503,10 +511,7 @@ def run_calibration(
     for topic in config.io.rectified_topics:
         if topic not in reader.topics:
             log.warning("rectified topic %s is not in the log: ignored", topic)
-    collected: dict[str, _Collected] = {}
-    seen = ScansSeen()  # each scan decoded once for every camera
-    for topic in camera_topics:
-        collected[topic] = collect_frames(reader, lidar_topic, topic, config, tree, engine, seen)
+    collected = _collect_cameras(reader, lidar_topic, camera_topics, config, tree, engine)
     if joint and len(camera_topics) > 1:
         return _calibrate_joint(reader, lidar_topic, camera_topics, collected, (tree, tf_problem), initial, config,
                                 quiet, engine)

@@ -357,7 +357,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     problem = CalibrationProblem(frames, T_camera_lidar_init, cfg)
     centre = 0.5 * (problem.lower + problem.upper)
     clock_field = _time_field(problem)
-    if clock_field is not None:  # known rolling shutters move the points to their rows' times
+    if clock_field is not None and any(clock_field.readouts):  # known rolling shutters: points to their rows' times
         clock_field.apply(TimeShift(), clock_field.row_fractions(centre))
     start = time.perf_counter()
     init_scores, _ = problem.frame_scores(centre[None])

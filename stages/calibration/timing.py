@@ -144,14 +144,20 @@ class TimeShiftField:
         ``row_fractions`` at the extrinsic the rows are taken at)."""
         mean_row = self.mean_fraction(fractions)
         m = self.mean_shift_s(shift, fractions)
+        changed = False
         for group, base, group_fractions in zip(self.groups, self.base_points, fractions, strict=True):
             for k, (scorers, points) in enumerate(zip(group, base, strict=True)):
                 tw = self.twists[k]
                 readout = self.readouts[k] if shift.readout_s is None else shift.readout_s
                 for j, p in enumerate(points):
                     rest = readout * (group_fractions[k][j] - mean_row)
-                    scorers[j] = _with_points(scorers[j], p if tw is None else self._moved(p, tw, m, rest))
-        self.problem.points_moved()
+                    # no shift (no motion, or none under this timing): the unshifted points themselves
+                    moved = p if tw is None or (m == 0.0 and not np.any(rest)) else self._moved(p, tw, m, rest)
+                    if scorers[j].points is not moved:
+                        scorers[j] = _with_points(scorers[j], moved)
+                        changed = True
+        if changed:
+            self.problem.points_moved()
 
     def mean_shift_s(self, shift: TimeShift, fractions: Fractions) -> float:
         """The mean of the points' time shifts ``tau`` over the frames, seconds."""
