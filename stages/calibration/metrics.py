@@ -108,9 +108,9 @@ def _planes(image: NDArray[np.floating], dtype: type[np.floating] = np.float32) 
 
 @functools.lru_cache(maxsize=16)
 def _all_valid(shape: tuple[int, int]) -> NDArray[np.uint8]:
-    """An (H, W) uint8 mask of ones, one per shape for every frame without a mask of its own (a 40-frame
-    six-camera rig held 240 copies, 86 MB). Shared: never written (left writeable because numba compiles
-    its kernels again for read-only arrays)."""
+    """An (H, W) uint8 mask of ones, one per shape for every frame without a mask of its own (instead of a copy
+    per frame: 86 MB over a 40-frame six-camera rig). Shared: never written (left writeable because numba
+    compiles its kernels again for read-only arrays)."""
     return np.ones(shape, dtype=np.uint8)
 
 
