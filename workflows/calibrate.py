@@ -328,28 +328,31 @@ def _odometry_twists(engine: Engine, source: LogFrames, lidar_topic: str, chosen
     if has_odometry(tree, scan.lidar.frame_id.lstrip("/")):
         return {}
     wanted = [p for p in chosen if p.neighbour_log_ns >= 0 and isinstance(scans.get(p.lidar_stamp_ns), LidarFeatures)
-              and tuple(sorted((p.lidar_stamp_ns, p.neighbour_stamp_ns))) not in registered]
+              and _scan_pair(p) not in registered]
     reg = mapping.ego_motion_registration(config)
     times = sorted({p.lidar_log_ns for p in wanted} | {p.neighbour_log_ns for p in wanted})
     sets = ({ps.stamp_ns: ps for ps in engine.map_frames(source, lidar_topic, partial(mapping.prepare_scan, config=reg),
                                                           desc="calibration odometry", log_times_ns=times)}
             if times else {})
     for pair in wanted:
-        here, there = sets.get(pair.lidar_stamp_ns), sets.get(pair.neighbour_stamp_ns)
-        if here is None or there is None:
+        key = _scan_pair(pair)
+        early, late = sets.get(key[0]), sets.get(key[1])
+        if early is None or late is None or key in registered:  # each other's neighbours: one registration
             continue
-        early, late = sorted((here, there), key=lambda s: s.stamp_ns)
-        key = (early.stamp_ns, late.stamp_ns)
-        if key not in registered:  # two chosen scans that are each other's neighbour share one registration
-            registered[key] = mapping.scan_twist(early, late, reg)
-            if registered[key] is None:
-                log.warning("no odometry for the scans at %d and %d: their registration failed", *key)
+        registered[key] = mapping.scan_twist(early, late, reg)
+        if registered[key] is None:
+            log.warning("no odometry for the scans at %d and %d: their registration failed", *key)
     twists: dict[int, NDArray[Any]] = {}
     for pair in chosen:
-        twist = registered.get(tuple(sorted((pair.lidar_stamp_ns, pair.neighbour_stamp_ns))))  # type: ignore[arg-type]
+        twist = registered.get(_scan_pair(pair))
         if twist is not None:
             twists[pair.lidar_stamp_ns] = twist
     return twists
+
+
+def _scan_pair(pair: ChosenPair) -> tuple[int, int]:
+    """(earlier, later) header stamps of a chosen scan and its neighbour: the key of their registration."""
+    return min(pair.lidar_stamp_ns, pair.neighbour_stamp_ns), max(pair.lidar_stamp_ns, pair.neighbour_stamp_ns)
 
 
 def _joined(chosen: list[ChosenPair], scans: dict[int, Any], images: dict[int, CameraFeatures], config: Config,
