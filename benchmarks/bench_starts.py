@@ -20,7 +20,7 @@ where the results carry none. ``--markdown PATH`` writes the tables at the head 
 (docs/accuracy.md), keeping its ``## `` sections.
 
     .venv/bin/python benchmarks/bench_starts.py [--quick] [--cases kitti sim-16 ...] [--starts 5]
-        [--deg 2] [--m 0.12] [--jobs N] [--markdown docs/accuracy.md]
+        [--deg 2] [--m 0.12] [--jobs N] [--markdown docs/accuracy.md] [--jsonl runs.jsonl]
 
 ``--jobs N``: N calibrations at once, each (case, start) in a worker process on one numba thread (a case is
 loaded, or simulated, once per worker): on a many-core machine the full benchmark takes minutes per 40 runs
@@ -35,13 +35,14 @@ smoke test of the benchmark, not the accuracy of the defaults.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
 import sys
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -87,13 +88,19 @@ class Case:
 
 @dataclass
 class Outcome:
-    """One calibration: errors, verdict, the 2-sigma check (None: no per-axis deviations) and seconds."""
+    """One calibration: errors, verdict, the 2-sigma check (None: no per-axis deviations) and seconds; for
+    ``--jsonl``, where it started, its per-axis errors and deviations (camera frame: rotation degrees,
+    translation metres; NaN where the result has none) and the verdict's reason."""
 
     rot_deg: float
     trans_m: float
     suspect: bool
     covered: bool | None
     seconds: float
+    start: str = ""
+    axis_errors: list[float] = field(default_factory=list)
+    axis_deviations: list[float] = field(default_factory=list)
+    reason: str = ""
 
 
 @dataclass
@@ -180,7 +187,11 @@ def run_start(name: str, case: Case, label: str, T_start: Mat4) -> Outcome:
     rot, trans = errors(result.T_camera_lidar, case.T_true)
     print(f"  {name} {label}: {rot:.3f} deg / {100 * trans:.1f} cm {result.verdict} "
           f"{result.verdict_reason} ({seconds:.0f} s)", flush=True)
-    return Outcome(rot, trans, result.verdict == "suspect", covered(result, case.T_true), seconds)
+    err_rot, err_trans = per_axis_errors(result.T_camera_lidar, case.T_true)
+    deviations = [float(v) for name in ("std_rotation_deg", "std_translation_m")
+                  for v in np.asarray(getattr(result, name, np.full(3, np.nan)), dtype=np.float64).ravel()]
+    return Outcome(rot, trans, result.verdict == "suspect", covered(result, case.T_true), seconds, label,
+                   [*map(float, err_rot), *map(float, err_trans)], deviations, result.verdict_reason)
 
 
 def run_case(name: str, case: Case, starts: int, deg: float, m: float) -> list[Outcome]:
@@ -294,6 +305,9 @@ def main() -> None:
     parser.add_argument("--m", type=float, default=0.12)
     parser.add_argument("--quick", action="store_true", help="cut-down run for a few minutes on 2 cores")
     parser.add_argument("--markdown", type=Path, default=None, help="write the table to this markdown file")
+    parser.add_argument("--jsonl", type=Path, default=None,
+                        help="also write every calibration (case, start, per-axis errors and deviations, verdict) "
+                             "as a JSON line to this file")
     parser.add_argument("--jobs", type=int, default=1,
                         help="calibrations at once, each in its own process on one numba thread (e.g. the cores)")
     args = parser.parse_args()
@@ -308,6 +322,9 @@ def main() -> None:
                 case = load_real(name, args.quick) if name in REAL else load_sim(name, Path(tmp), args.quick)
                 if case is not None:
                     rows[name] = run_case(name, case, args.starts, args.deg, args.m)
+    if args.jsonl is not None:
+        args.jsonl.write_text("".join(json.dumps({"case": name, **asdict(o)}) + "\n"
+                                      for name, out in rows.items() for o in out))
     lines = table(rows)
     widths = [max(len(h), *(len(line[i]) for line in lines)) for i, h in enumerate(HEADER)]
     print("  ".join(h.rjust(w) for h, w in zip(HEADER, widths, strict=True)))

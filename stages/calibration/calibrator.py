@@ -52,6 +52,7 @@ from fleetcal.stages.calibration.uncertainty import (
     BANDS_PER_FRAME,
     axis_deviations,
     band_scores,
+    objective_floor,
     ring_alias_optima,
     sampling_floor,
     scores_alike,
@@ -111,8 +112,9 @@ class CalibrationResult:
             verdict ``suspect``.
         std_rotation_deg, std_translation_m: (3,) standard deviations about / along the (reference) camera's
             x, y, z, degrees / metres (``uncertainty.axis_deviations``: seeded runs that score as well as the
-            best, and the scan's sampling cell); translation NaN where held. The verdict is ``suspect`` where
-            twice a deviation exceeds ``agree_rotation_deg`` / ``agree_translation_m``.
+            best, the scan's sampling cell for the translation and the objective's own bias,
+            ``uncertainty.OBJECTIVE_BIAS_DEG``, for the rotation); translation NaN where held. The verdict is
+            ``suspect`` where twice a deviation exceeds ``agree_rotation_deg`` / ``agree_translation_m``.
         alike_runs: other seeded runs that score as well as the best.
         alike_aliases: optima one to three lidar rings away along the lidar's axis that score as well as the
             best (``uncertainty.ring_alias_optima``; probed on rings sparser than ``sparse_rings_above_deg``).
@@ -415,8 +417,9 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     aliases = (ring_alias_optima(problem, x_best, problem.free_parameters(hold), ring_deg, range_m, swarm_view)
                if cfg.metric == "gom" and ring_deg > cfg.sparse_rings_above_deg else [])  # GOM: image bands
     deviations = axis_deviations(problem, x_best, [run.x for i, run in enumerate(runs) if i != best_index],
-                                 np.hypot(sampling_floor(ring_deg, problem.pixel_deg(), range_m, off_axis),
-                                          _timing_floor(clock_field, timing, cfg, T_best)),
+                                 np.linalg.norm([sampling_floor(ring_deg, problem.pixel_deg(), range_m, off_axis),
+                                                 _timing_floor(clock_field, timing, cfg, T_best),
+                                                 objective_floor()], axis=0),
                                  problem.free_parameters(hold), aliases)
     uncertain = _uncertain_axes(deviations.rotation_deg, deviations.translation_m, cfg)
     reason = ""

@@ -1,0 +1,113 @@
+"""Where the calibration objective itself peaks: the local optimum nearest the truth, per real log and
+simulated rig, without the search's luck.
+
+For each case of ``bench_starts.py`` (its real logs and simulated rigs, loaded the same way) the objective is
+built at the truth (lidar gradients taken there, the search box centred there) and a pattern search climbs
+from the truth over every free parameter (first steps 0.1 deg, 1 cm and a focal scale of 0.005, down to 2 %
+of them). The climb ends at the objective's own optimum next to the truth: its distance from the truth is the
+error no search can avoid on that log, whatever its starts and seeds, and a change to the objective (its
+features, gradients, weights) can be judged by it in minutes and without the noise of a swarm, whose path a
+small change to the score sends elsewhere. On the simulated rigs the truth is exact, so their figures are the
+objective's bias alone; on real logs they include the error of the log's reference calibration.
+
+    .venv/bin/python benchmarks/bench_objective_bias.py [--cases kitti sim-16 ...]
+
+Prints one row per case: rotation and translation error of the optimum, its per-axis errors (camera frame:
+rotation vector degrees, translation cm), the score it gained over the truth and the evaluations it took;
+then the median over the real logs and over the simulated rigs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.bench_starts import REAL, SIM, Case, load_real, load_sim, per_axis_errors
+from fleetcal.pipeline.transforms import rotation_error_deg, translation_error_m
+from fleetcal.stages.calibration.calibrator import resolve_auto_rules
+from fleetcal.stages.calibration.problem import CalibrationProblem, evaluate_embedded
+from fleetcal.stages.calibration.pso import pattern_search
+
+FIRST_STEPS = np.array([0.1, 0.1, 0.1, 0.01, 0.01, 0.01, 0.005])
+"""First pattern-search steps: rotation degrees, translation metres, focal scale."""
+MIN_STEP_FRACTION = 0.02
+"""The climb stops once its steps are this fraction of the first ones (0.002 deg, 0.2 mm)."""
+
+
+@dataclass
+class Optimum:
+    """The objective's local optimum nearest the truth: its errors, the score it gained over the truth and the
+    evaluations the climb took."""
+
+    rot_deg: float
+    trans_cm: float
+    axes_deg: NDArray[np.float64]
+    axes_cm: NDArray[np.float64]
+    gain: float
+    evaluations: int
+
+
+def optimum_near_truth(case: Case) -> Optimum:
+    """The objective's local optimum nearest the truth of ``case``."""
+    config = resolve_auto_rules(case.frames, case.T_true, case.config)
+    problem = CalibrationProblem(case.frames, case.T_true, config)
+    x_truth = np.zeros(problem.lower.size)
+    x_truth[6:] = 1.0  # a searched focal scale starts at 1
+    free = problem.free_parameters()
+    steps = FIRST_STEPS[: x_truth.size]
+    fit = pattern_search(partial(evaluate_embedded, problem, base=x_truth, free=free), x_truth[free], steps[free],
+                         problem.lower[free], problem.upper[free], min_step_fraction=MIN_STEP_FRACTION)
+    x_best = x_truth.copy()
+    x_best[free] = fit.best_x
+    T_best = problem.T_camera_lidar(x_best)
+    axes_deg, axes_m = per_axis_errors(T_best, case.T_true)
+    truth_score = float(problem.evaluate(x_truth[None])[0])
+    return Optimum(rotation_error_deg(T_best, case.T_true), 100 * translation_error_m(T_best, case.T_true),
+                   axes_deg, 100 * axes_m, fit.best_score - truth_score, problem.evaluations)
+
+
+def row(name: str, found: Optimum) -> str:
+    """One markdown table row."""
+    axes_deg = " ".join(f"{v:+.3f}" for v in found.axes_deg)
+    axes_cm = " ".join(f"{v:+.1f}" for v in found.axes_cm)
+    return (f"| {name} | {found.rot_deg:.3f} | {found.trans_cm:.1f} | {axes_deg} | {axes_cm} | {found.gain:.4f} | "
+            f"{found.evaluations} |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--cases", nargs="*", default=[*REAL, *SIM], choices=[*REAL, *SIM])
+    args = parser.parse_args()
+    print("| case | rotation deg | translation cm | about x y z (deg) | along x y z (cm) | score gained | "
+          "evaluations |")
+    print("|---|---|---|---|---|---|---|")
+    found: dict[str, Optimum] = {}
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="fleetcal_bias_") as tmp:
+        for name in args.cases:
+            case = load_real(name, False) if name in REAL else load_sim(name, Path(tmp), False)
+            if case is None:
+                continue
+            found[name] = optimum_near_truth(case)
+            print(row(name, found[name]), flush=True)
+    for label, group in (("real logs", REAL), ("simulated rigs", SIM)):
+        names = [n for n in found if n in group]
+        if names:
+            rot = np.median([found[n].rot_deg for n in names])
+            trans = np.median([found[n].trans_cm for n in names])
+            print(f"| **median, {label}** | {rot:.3f} | {trans:.1f} | | | | |")
+    print(f"({time.perf_counter() - t0:.0f} s)")
+
+
+if __name__ == "__main__":
+    main()
