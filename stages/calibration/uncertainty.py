@@ -14,7 +14,7 @@ Its sources, added in quadrature:
   shift moves a point across the image only by its off-axis tangent, so that deviation is larger by its
   inverse. Sparse rings bias the translation by decimetres (32 beams: nuScenes 31 cm, simulated 22 cm) with
   every other measure confident, which this floor covers; the rotation averages the cell away over many
-  edges (a simulated 16-beam street lands within 0.2 deg), so it gets no floor.
+  edges (a simulated 16-beam street lands within 0.2 deg), so it gets no sampling floor.
 
 - ring aliases: a lidar's rings are cones about its axis, so moving it along that axis by one ring spacing
   at a point's range puts the next ring where the last one was. With sparse rings an image edge matched by
