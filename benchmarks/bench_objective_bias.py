@@ -35,11 +35,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.bench_starts import REAL, SIM, Case, load_real, load_sim, per_axis_errors
 from fleetcal.pipeline.transforms import rotation_error_deg, translation_error_m
 from fleetcal.stages.calibration.calibrator import resolve_auto_rules
-from fleetcal.stages.calibration.problem import CalibrationProblem, evaluate_embedded
+from fleetcal.stages.calibration.problem import CalibrationProblem, embed, evaluate_embedded
 from fleetcal.stages.calibration.pso import pattern_search
+from fleetcal.stages.calibration.uncertainty import LOCAL_POLISH_STEPS
 
-FIRST_STEPS = np.array([0.1, 0.1, 0.1, 0.01, 0.01, 0.01, 0.005])
-"""First pattern-search steps: rotation degrees, translation metres, focal scale."""
 MIN_STEP_FRACTION = 0.02
 """The climb stops once its steps are this fraction of the first ones (0.002 deg, 0.2 mm)."""
 
@@ -64,14 +63,12 @@ def optimum_near_truth(case: Case) -> Optimum:
     x_truth = np.zeros(problem.lower.size)
     x_truth[6:] = 1.0  # a searched focal scale starts at 1
     free = problem.free_parameters()
-    steps = FIRST_STEPS[: x_truth.size]
-    fit = pattern_search(partial(evaluate_embedded, problem, base=x_truth, free=free), x_truth[free], steps[free],
-                         problem.lower[free], problem.upper[free], min_step_fraction=MIN_STEP_FRACTION)
-    x_best = x_truth.copy()
-    x_best[free] = fit.best_x
-    T_best = problem.T_camera_lidar(x_best)
-    axes_deg, axes_m = per_axis_errors(T_best, case.T_true)
     truth_score = float(problem.evaluate(x_truth[None])[0])
+    fit = pattern_search(partial(evaluate_embedded, problem, base=x_truth, free=free), x_truth[free],
+                         LOCAL_POLISH_STEPS[: x_truth.size][free], problem.lower[free], problem.upper[free],
+                         min_step_fraction=MIN_STEP_FRACTION, score_at_x0=truth_score)
+    T_best = problem.T_camera_lidar(embed(fit.best_x, x_truth, free)[0])
+    axes_deg, axes_m = per_axis_errors(T_best, case.T_true)
     return Optimum(rotation_error_deg(T_best, case.T_true), 100 * translation_error_m(T_best, case.T_true),
                    axes_deg, 100 * axes_m, fit.best_score - truth_score, problem.evaluations)
 

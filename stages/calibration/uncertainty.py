@@ -71,7 +71,9 @@ and the eight simulated rigs of ``benchmarks/bench_starts.py``: 0.122 deg over t
 ALIAS_RINGS = (1, 2, 3)
 """Ring spacings (at the points' typical range) the estimate is moved along the lidar's axis to look for the
 optima of neighbouring rings (``ring_alias_optima``)."""
-_ALIAS_POLISH_STEPS = np.array([0.1, 0.1, 0.1, 0.01, 0.01, 0.01, 0.005])  # deg, m, focal scale
+LOCAL_POLISH_STEPS = np.array([0.1, 0.1, 0.1, 0.01, 0.01, 0.01, 0.005])
+"""First steps (rotation degrees, translation metres, focal scale) of a polish meant to stay on the optimum
+nearest its start (``ring_alias_optima``; ``benchmarks/bench_objective_bias.py`` from the truth)."""
 
 
 @dataclass
@@ -167,7 +169,7 @@ def ring_alias_optima(problem: CalibrationProblem, x_best: NDArray[np.float64], 
             if np.any(x0[free] < lower) or np.any(x0[free] > upper):
                 continue
             fit = pattern_search(partial(evaluate_embedded, problem, base=x0, free=free, view=view), x0[free],
-                                 _ALIAS_POLISH_STEPS[: x0.size][free], lower, upper, min_step_fraction=0.05)
+                                 LOCAL_POLISH_STEPS[: x0.size][free], lower, upper, min_step_fraction=0.05)
             optima.append(embed(fit.best_x, x0, free)[0])
     return optima
 
