@@ -10,7 +10,10 @@ features, gradients, weights) can be judged by it in minutes and without the noi
 small change to the score sends elsewhere. On the simulated rigs the truth is exact, so their figures are the
 objective's bias alone; on real logs they include the error of the log's reference calibration.
 
-    .venv/bin/python benchmarks/bench_objective_bias.py [--cases kitti sim-16 ...]
+    .venv/bin/python benchmarks/bench_objective_bias.py [--cases kitti sim-16 ...] [--solver KEY=VALUE ...]
+
+``--solver KEY=VALUE`` changes a ``SolverConfig`` setting for every case (as in ``bench_starts.py``): the
+alternatives of docs/accuracy.md "Alternatives measured on the objective's own optimum" were judged so.
 
 Prints one row per case: rotation and translation error of the optimum, its per-axis errors (camera frame:
 rotation vector degrees, translation cm), the score it gained over the truth and the evaluations it took;
@@ -32,7 +35,7 @@ from numpy.typing import NDArray
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.bench_starts import REAL, SIM, Case, load_real, load_sim, per_axis_errors
+from benchmarks.bench_starts import REAL, SIM, Case, load_case, per_axis_errors, solver_overrides
 from fleetcal.pipeline.transforms import rotation_error_deg, translation_error_m
 from fleetcal.stages.calibration.calibrator import resolve_auto_rules
 from fleetcal.stages.calibration.problem import CalibrationProblem, embed, evaluate_embedded
@@ -84,7 +87,13 @@ def row(name: str, found: Optimum) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--cases", nargs="*", default=[*REAL, *SIM], choices=[*REAL, *SIM])
+    parser.add_argument("--solver", action="append", default=[], metavar="KEY=VALUE",
+                        help="a SolverConfig setting for every case (repeatable), e.g. neighbours_by=angle")
     args = parser.parse_args()
+    try:
+        overrides = solver_overrides(args.solver)
+    except ValueError as exc:
+        parser.error(str(exc))
     print("| case | rotation deg | translation cm | about x y z (deg) | along x y z (cm) | score gained | "
           "evaluations |")
     print("|---|---|---|---|---|---|---|")
@@ -92,7 +101,7 @@ def main() -> None:
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="fleetcal_bias_") as tmp:
         for name in args.cases:
-            case = load_real(name, False) if name in REAL else load_sim(name, Path(tmp), False)
+            case = load_case(name, Path(tmp), False, overrides)
             if case is None:
                 continue
             found[name] = optimum_near_truth(case)

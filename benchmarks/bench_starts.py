@@ -21,6 +21,10 @@ where the results carry none. ``--markdown PATH`` writes the tables at the head 
 
     .venv/bin/python benchmarks/bench_starts.py [--quick] [--cases kitti sim-16 ...] [--starts 5]
         [--deg 2] [--m 0.12] [--jobs N] [--markdown docs/accuracy.md] [--jsonl runs.jsonl]
+        [--solver KEY=VALUE ...]
+
+``--solver KEY=VALUE``: a ``SolverConfig`` setting changed for every case (repeatable), to judge an alternative
+on the same runs as the defaults, e.g. ``--solver ring_smoothing=off``.
 
 ``--jobs N``: N calibrations at once, each (case, start) in a worker process on one numba thread (a case is
 loaded, or simulated, once per worker): on a many-core machine the full benchmark takes minutes per 40 runs
@@ -53,6 +57,7 @@ from scipy.spatial.transform import Rotation
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from fleetcal.pipeline.config import Config
+from fleetcal.pipeline.errors import ConfigError
 from fleetcal.stages.calibration import CalibrationFrame, SolverConfig, calibrate
 from fleetcal.workflows.calibrate import solver_config
 from tests.test_calibration_synthetic import perturb
@@ -147,6 +152,42 @@ def load_sim(name: str, out: Path, quick: bool) -> Case:
                 _quick(solver) if quick else solver)
 
 
+def solver_overrides(pairs: list[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` strings as ``SolverConfig`` settings, each value converted to its default's type.
+
+    Raises:
+        ValueError: an unknown key, a value of the wrong type or one the settings refuse (one line).
+    """
+    defaults = SolverConfig()
+    out: dict[str, Any] = {}
+    for pair in pairs:
+        key, _, text = pair.partition("=")
+        if not hasattr(defaults, key) or not text:
+            raise ValueError(f"--solver {pair!r}: expected KEY=VALUE with KEY a SolverConfig setting")
+        default = getattr(defaults, key)
+        try:
+            if isinstance(default, bool):
+                if text.lower() not in ("true", "false"):
+                    raise ValueError(text)
+                out[key] = text.lower() == "true"
+            else:
+                out[key] = type(default)(text) if default is not None else float(text)
+        except ValueError:
+            raise ValueError(f"--solver {pair!r}: {text!r} is not a {type(default).__name__}") from None
+    try:
+        replace(defaults, **out).validate()
+    except ConfigError as exc:
+        raise ValueError(f"--solver: {exc}") from None
+    return out
+
+
+def load_case(name: str, out: Path, quick: bool, overrides: dict[str, Any]) -> Case | None:
+    """The case ``name`` (a real log, or a rig simulated into ``out``) with ``overrides`` applied to its
+    solver settings."""
+    case = load_real(name, quick) if name in REAL else load_sim(name, out, quick)
+    return case if case is None or not overrides else replace(case, config=replace(case.config, **overrides))
+
+
 def _quick(config: SolverConfig) -> SolverConfig:
     return replace(config, n_particles=60, max_iterations=40, repeats=1, confirm_repeats=0)
 
@@ -210,7 +251,7 @@ def _parallel_job(name: str, index: int, args: argparse.Namespace, tmp: str) -> 
     if name not in _CASES:
         folder = Path(tmp) / str(os.getpid())
         folder.mkdir(exist_ok=True)
-        _CASES[name] = load_real(name, args.quick) if name in REAL else load_sim(name, folder, args.quick)
+        _CASES[name] = load_case(name, folder, args.quick, args.overrides)
     case = _CASES[name]
     if case is None:
         return name, index, None
@@ -310,7 +351,13 @@ def main() -> None:
                              "as a JSON line to this file")
     parser.add_argument("--jobs", type=int, default=1,
                         help="calibrations at once, each in its own process on one numba thread (e.g. the cores)")
+    parser.add_argument("--solver", action="append", default=[], metavar="KEY=VALUE",
+                        help="a SolverConfig setting for every case (repeatable), e.g. ring_smoothing=off")
     args = parser.parse_args()
+    try:
+        args.overrides = solver_overrides(args.solver)
+    except ValueError as exc:
+        parser.error(str(exc))
     args.starts = args.starts if args.starts is not None else (1 if args.quick else 5)
     rows: dict[str, list[Outcome]] = {}
     t0 = time.perf_counter()
@@ -319,7 +366,7 @@ def main() -> None:
             rows = run_parallel(args, tmp)
         else:
             for name in args.cases:
-                case = load_real(name, args.quick) if name in REAL else load_sim(name, Path(tmp), args.quick)
+                case = load_case(name, Path(tmp), args.quick, args.overrides)
                 if case is not None:
                     rows[name] = run_case(name, case, args.starts, args.deg, args.m)
     if args.jsonl is not None:

@@ -324,7 +324,7 @@ class CalibrationProblem:
             grads = compute_sphere_gradients(pts, feat, T_cam_lidar, k=cfg.sphere_k,
                                              normalise=cfg.normalise_gradients, fit=cfg.fit,
                                              neighbours_by=cfg.neighbours_on("camera"), neighbours=neighbours)
-        magnitude = grads.magnitude if cfg.lidar_magnitude == "paper" else np.hypot(grads.gx, grads.gy)
+        magnitude = grads.magnitude  # the paper's weight (Algorithm 1: mean absolute difference to the neighbours)
         sel = magnitude > 0
         if cfg.keep_fraction < 1.0 and np.any(sel):
             cut = np.quantile(magnitude[sel], 1.0 - cfg.keep_fraction)
