@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from fleetcal.pipeline.config import Config
 from fleetcal.pipeline.errors import ProcessingError
@@ -208,8 +209,9 @@ def test_kitti_search_box_away_from_the_scan_is_a_clear_error() -> None:
 def test_pjlab_two_frames_with_distortion() -> None:
     """Workflow defaults, no return nearer than ~4 m: the translation is weakly observed. From the log's tf
     the seeded 6-DoF runs disagree, so ``auto`` holds the translation at the log's (11.9 cm off) and the
-    rotation-only runs confirm one another: measured 0.182 deg / 12.1 cm, but ``suspect``, since their
-    rotation lies 0.79 deg from the best 6-DoF run's. (The camera sphere: 0.238
+    rotation-only runs confirm one another: measured 0.176 deg / 12.1 cm, but ``suspect``: the 6-DoF runs it
+    replaced spread 0.9-1.3 deg and 55-60 cm (2 sigma) about it, its deviations, which cover the truth on every
+    axis (9.1 cm off at most). (The camera sphere: 0.238
     deg / 12.1 cm, ``recalibrated``; from 5 other starts as far off it gave 0.27-0.75 deg.) The 15 cm bound
     is met by not moving the translation, not by estimating it. From a start 2 deg / 11 cm off on another
     axis the 6-DoF runs agree on 0.77 deg / 34 cm, having moved the translation 34 cm along axes the
@@ -222,7 +224,11 @@ def test_pjlab_two_frames_with_distortion() -> None:
     result = calibrate(problem.frames, problem.T_init, config)
     rot, trans = errors(result.T_camera_lidar, problem.T_true)
     assert result.translation_held and result.verdict == "suspect"
-    assert "with the translation held they agree" in result.verdict_reason
+    assert "the translation was held" in result.verdict_reason, result.verdict_reason
+    E = result.T_camera_lidar @ np.linalg.inv(problem.T_true)
+    axis_errors = np.concatenate([Rotation.from_matrix(E[:3, :3]).as_rotvec(degrees=True), E[:3, 3]])
+    deviations = np.concatenate([result.std_rotation_deg, result.std_translation_m])
+    assert np.all(np.abs(axis_errors) <= 2 * deviations), (axis_errors, deviations)
     np.testing.assert_allclose(np.linalg.inv(result.T_camera_lidar)[:3, 3],
                                np.linalg.inv(problem.T_init)[:3, 3], atol=1e-9)
     assert rot <= 0.5, f"rotation error {rot:.3f} deg"

@@ -75,3 +75,29 @@ def test_ring_alias_optima_are_polished_moves_along_the_lidar_axis_and_bound_the
     assert ring_alias_optima(problem, x_true, problem.free_parameters(hold_translation=True), 0.5, 10.0) == []
     assert ring_alias_optima(problem, x_true, free, float("nan"), 10.0) == []
     assert len(ring_alias_optima(problem, x_true, free, 2.0, 10.0)) == 2  # 35 cm in the box, 70 and 105 cm not
+
+
+def test_a_held_translation_is_as_uncertain_as_the_six_dof_runs_it_replaced() -> None:
+    """Held where the 6-DoF runs disagreed: each axis's deviation is the floor and those runs' root mean
+    square distance from the held estimate in quadrature; held by the settings (nothing replaced), the
+    translation has no deviation."""
+    from fleetcal.stages.calibration import CalibrationProblem, SolverConfig
+    from fleetcal.stages.calibration.uncertainty import axis_deviations
+    from tests.test_calibration_synthetic import synthetic_frame, true_T_camera_lidar
+
+    problem = CalibrationProblem([synthetic_frame(0)], true_T_camera_lidar(), SolverConfig(search_deg=2.0,
+                                                                                           search_m=0.5))
+    held = problem.free_parameters(hold_translation=True)
+    x_held = np.zeros(6)
+    x_runs = [np.array([0.4, 0.0, 0.0, 0.0, 0.12, 0.0]), np.array([0.0, -0.2, 0.0, 0.05, -0.06, 0.0])]
+    floor = np.array([0.12, 0.12, 0.12, 0.01, 0.01, 0.03])
+    deviations = axis_deviations(problem, x_held, [], floor, held, x_replaced=x_runs)
+    T_held = problem.T_camera_lidar(x_held)
+    deltas = np.array([camera_delta(problem.T_camera_lidar(x), T_held) for x in x_runs])
+    expected = np.sqrt(floor ** 2 + np.mean(deltas ** 2, axis=0))
+    np.testing.assert_allclose(deviations.rotation_deg, expected[:3], rtol=1e-9)
+    np.testing.assert_allclose(deviations.translation_m, expected[3:], rtol=1e-9)
+    assert deviations.translation_m[1] > 0.08  # the runs 12 and 6 cm apart along y: 9.5 cm
+    by_settings = axis_deviations(problem, x_held, [], floor, held)
+    assert np.all(np.isnan(by_settings.translation_m))
+    np.testing.assert_allclose(by_settings.rotation_deg, floor[:3])

@@ -78,11 +78,11 @@ class CalibrationResult:
         evaluations: candidate poses scored over all repeats.
         verdict: ``ok`` (initial guess confirmed), ``recalibrated`` or ``suspect`` (GOM below
             ``gom_suspect_below``, a flat optimum, an estimate at the edge of the search box or on a
-            frame's overlap limit, no other seeded run agreeing with the returned one, or a held translation
-            whose rotation lies away from the unconfirmed 6-DoF best's, ``SolverConfig.translation``; or
-            a single run in a ``SolverConfig.wide_box``, which nothing confirms; or twice a per-axis standard
-            deviation, ``std_rotation_deg`` / ``std_translation_m``, beyond ``agree_rotation_deg`` /
-            ``agree_translation_m``).
+            frame's overlap limit, no other seeded run agreeing with the returned one, a single run in a
+            ``SolverConfig.wide_box``, which nothing confirms; or twice a per-axis standard deviation,
+            ``std_rotation_deg`` / ``std_translation_m``, beyond ``agree_rotation_deg`` /
+            ``agree_translation_m``, which for a translation held where the 6-DoF runs disagreed,
+            ``SolverConfig.translation``, holds those runs' spread).
         verdict_reason: why ``suspect`` (empty otherwise).
         flat: True when the optimum is not distinct from its neighbourhood.
         rotation_std_deg, translation_std_m: RMS deviation of the repeats from the returned estimate
@@ -113,7 +113,8 @@ class CalibrationResult:
         std_rotation_deg, std_translation_m: (3,) standard deviations about / along the (reference) camera's
             x, y, z, degrees / metres (``uncertainty.axis_deviations``: seeded runs that score as well as the
             best, the scan's sampling cell for the translation and the objective's own bias,
-            ``uncertainty.OBJECTIVE_BIAS_DEG``, for the rotation); translation NaN where held. The verdict is
+            ``uncertainty.OBJECTIVE_BIAS_DEG``, for the rotation; a held translation's the spread of the 6-DoF runs
+            it replaced); translation NaN where the settings held it (``translation = "hold"``). The verdict is
             ``suspect`` where twice a deviation exceeds ``agree_rotation_deg`` / ``agree_translation_m``.
         alike_runs: other seeded runs that score as well as the best.
         alike_aliases: optima one to three lidar rings away along the lidar's axis that score as well as the
@@ -364,16 +365,15 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     start = time.perf_counter()
     init_scores, _ = problem.frame_scores(centre[None])
     hold = cfg.holds_translation
-    turned_deg = 0.0  # rotation between a held estimate and the unconfirmed 6-DoF best it replaced
     clock = _SearchClock(progress, cfg.repeats, cfg.max_iterations)
     runs, best_index = _seeded_runs(problem, cfg, hold, clock)
+    replaced: list[_Run] = []  # the 6-DoF runs a held estimate replaced: their spread is its deviation
     if (cfg.translation == "auto" and not hold and not cfg.wide_box and cfg.repeats > 1
             and _agreeing(runs, best_index, cfg) == 0):  # the translation may be what the runs disagree on
         clock.runs += cfg.repeats
         held_runs, held_best = _seeded_runs(problem, cfg, True, clock)
         if _agreeing(held_runs, held_best, cfg) > 0:  # fewer unknowns, confirmed: preferred to an unconfirmed 6 DoF
-            turned_deg = rotation_error_deg(held_runs[held_best].T_camera_lidar, runs[best_index].T_camera_lidar)
-            runs, best_index, hold = held_runs, held_best, True
+            replaced, runs, best_index, hold = runs, held_runs, held_best, True
     best_run = runs[best_index]
     score, x_best, iterations = best_run.score, best_run.x, best_run.iterations
     swarm_view = problem.search_view(cfg.seed)  # the first run's swarm frames bound the checks' cost on long logs
@@ -420,7 +420,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
                                  np.linalg.norm([sampling_floor(ring_deg, problem.pixel_deg(), range_m, off_axis),
                                                  _timing_floor(clock_field, timing, cfg, T_best),
                                                  objective_floor()], axis=0),
-                                 problem.free_parameters(hold), aliases)
+                                 problem.free_parameters(hold), aliases, [run.x for run in replaced])
     uncertain = _uncertain_axes(deviations.rotation_deg, deviations.translation_m, cfg)
     reason = ""
     edge = box_edge(x_best, problem.lower, problem.upper, cfg.box_edge_fraction, problem.free_parameters(hold))
@@ -452,9 +452,10 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     elif len(runs) == 1 and cfg.wide_box:
         reason = (f"one seeded run in a wide search box (+-{cfg.search_deg:g} deg, +-{cfg.search_m:g} m) with no "
                   "other run to confirm it: far optima lie in such a box; set calibration.repeats to 2 or more")
-    elif turned_deg > cfg.agree_rotation_deg:
-        reason = (f"the seeded runs disagree; with the translation held they agree on a rotation {turned_deg:.2f} deg "
-                  "from the best 6-DoF run's, so it is not only the translation they disagree on; " + _MORE_EVIDENCE)
+    elif uncertain and replaced:
+        reason = (f"the seeded 6-DoF runs disagree, so the translation was held at the initial guess's; their spread "
+                  f"leaves the estimate uncertain beyond {cfg.agree_rotation_deg:g} deg / "
+                  f"{100 * cfg.agree_translation_m:g} cm (2 sigma: {', '.join(uncertain)}): " + _MORE_EVIDENCE)
     elif uncertain:
         reason = (f"the estimate is uncertain beyond {cfg.agree_rotation_deg:g} deg / "
                   f"{100 * cfg.agree_translation_m:g} cm (2 sigma: {', '.join(uncertain)}; "

@@ -37,6 +37,13 @@ Its sources, added in quadrature:
   ``OBJECTIVE_BIAS_DEG`` about each axis, is added to every rotation deviation, as the sampling cell is to
   the translation's.
 
+- the runs a held translation replaced: where the seeded 6-DoF runs disagree and the runs with the translation
+  held at the initial guess's agree, the held estimate is returned (``SolverConfig.translation`` ``auto``). The
+  log did not fix the translation, and the 6-DoF runs' spread about the held estimate (their root mean square
+  distance on each axis, rotation and translation) is how far it left open; without it a held translation had
+  no deviation at all. A translation held by the settings (``hold``, a box 0 m wide) is an input, not an
+  estimate, and keeps none (NaN).
+
 What they leave out is the translation's share of that bias beyond the sampling cell (KITTI's estimate sits
 3.8 cm off along the optical axis with every run agreeing) and a bias larger than the rigs measured. A
 sandwich estimate over the image bands (the score's finite-difference curvature against the spread of the
@@ -82,7 +89,7 @@ class AxisDeviations:
 
     Attributes:
         rotation_deg: (3,) degrees.
-        translation_m: (3,) metres; NaN where the translation was held.
+        translation_m: (3,) metres; NaN where the settings held the translation (an input, not an estimate).
         alike_runs: other seeded runs that score as well as the best (their spread is in the deviations).
         alike_aliases: ring-alias optima (``ring_alias_optima``) that score as well as the estimate.
     """
@@ -176,13 +183,19 @@ def ring_alias_optima(problem: CalibrationProblem, x_best: NDArray[np.float64], 
 
 def axis_deviations(problem: CalibrationProblem, x_best: NDArray[np.float64], x_others: list[NDArray[np.float64]],
                     floor: NDArray[np.float64], free: NDArray[np.bool_],
-                    x_aliases: list[NDArray[np.float64]] | None = None) -> AxisDeviations:
+                    x_aliases: list[NDArray[np.float64]] | None = None,
+                    x_replaced: list[NDArray[np.float64]] | None = None) -> AxisDeviations:
     """Per-axis deviations of the estimate ``x_best`` (parameters ``free`` were searched), in quadrature: the
     other seeded runs' estimates ``x_others`` that score as well (``scores_alike``: their root mean square over
     all other runs), the ring-alias optima ``x_aliases`` that score as well (half the farthest one's distance
-    on each axis) and ``floor`` (``sampling_floor``)."""
-    translation_held = not np.any(free[3:6])
+    on each axis), the 6-DoF runs ``x_replaced`` that a held translation replaced (their root mean square) and
+    ``floor`` (``sampling_floor``). The translation's are NaN where it was held and nothing was replaced."""
+    replaced = list(x_replaced or [])
+    translation_held = not np.any(free[3:6]) and not replaced
     variance = np.asarray(floor, dtype=np.float64) ** 2
+    if replaced:
+        T_best = problem.T_camera_lidar(x_best)
+        variance = variance + np.mean([camera_delta(problem.T_camera_lidar(x), T_best) ** 2 for x in replaced], axis=0)
     others, aliases = list(x_others), list(x_aliases or [])
     alike = alike_aliases = 0
     if others or aliases:
