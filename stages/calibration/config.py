@@ -27,19 +27,18 @@ class SolverConfig:
             initial guess is trusted: a drifted factory calibration, whose mounts bend more than they
             shift), the runs are made again with the translation held, and if another held run confirms their
             best, that is returned (``CalibrationResult.translation_held``): with fewer unknowns, confirmed, it
-            is preferred to an unconfirmed 6-DoF estimate. It stays ``suspect`` where its rotation lies further
-            than ``agree_rotation_deg`` from the 6-DoF best's (the runs did not disagree on the translation
-            alone). Held runs that do not confirm one another leave the 6-DoF best, ``suspect``. A log whose
+            is preferred to an unconfirmed 6-DoF estimate. Its deviations hold the 6-DoF runs' spread about it
+            (``uncertainty.axis_deviations``): the log did not fix the translation, which is only as good as the
+            initial guess's, so it is usually ``suspect``. Held runs that do not confirm one another leave the
+            6-DoF best, ``suspect``. A log whose
             scene does not fix the translation (no near structure) thus keeps the factory translation instead
             of moving it by tens of centimetres to an optimum no other run finds. Evidence, defaults, from the
             log's start (6 DoF -> held):
             - PJLab rig1 (no return nearer than ~4 m): 0.172 deg / 27.3 cm, 6 runs 3.3 deg / 64 cm apart ->
-              0.238 deg / 12.1 cm (the log's translation error is 11.9 cm), 0.10 deg from the 6-DoF best:
-              ``recalibrated``;
+              0.238 deg / 12.1 cm (the log's translation error is 11.9 cm), 0.10 deg from the 6-DoF best;
             - simulated street, 32 beams, from 2 deg / 10 cm, start seeds 7, 8, 9: 0.71 / 24, 2.58 / 56,
-              2.56 / 56 -> 1.45 / 10.7, 0.48 / 10.0, 0.71 / 10.2, each 1.7-2.7 deg from the 6-DoF best:
-              ``suspect`` both ways;
-            - 16 beams, seed 7: 5.28 / 80 -> 3.41 / 9.5 (5.9 deg from it): ``suspect`` both ways;
+              2.56 / 56 -> 1.45 / 10.7, 0.48 / 10.0, 0.71 / 10.2, each 1.7-2.7 deg from the 6-DoF best;
+            - 16 beams, seed 7: 5.28 / 80 -> 3.41 / 9.5 (5.9 deg from it);
             - KITTI, PJLab rig2 and nuScenes are confirmed in 6 DoF and unchanged (holding nuScenes'
               translation would cost rotation: 1.16 deg vs 0.58).
             Tried, not adopted: holding also where the best is confirmed but the runs spread over
