@@ -52,7 +52,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -60,6 +59,7 @@ from fleetcal.pipeline.config import Config
 from fleetcal.pipeline.errors import ConfigError
 from fleetcal.stages.calibration import CalibrationFrame, SolverConfig, calibrate
 from fleetcal.workflows.calibrate import solver_config
+from tests.test_calibration_real import per_axis_errors
 from tests.test_calibration_synthetic import perturb
 
 Mat4 = NDArray[np.float64]
@@ -190,13 +190,6 @@ def load_case(name: str, out: Path, quick: bool, overrides: dict[str, Any]) -> C
 
 def _quick(config: SolverConfig) -> SolverConfig:
     return replace(config, n_particles=60, max_iterations=40, repeats=1, confirm_repeats=0)
-
-
-def per_axis_errors(T: Mat4, T_true: Mat4) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Rotation error (3,) deg (rotation vector) and translation error (3,) m of ``T`` against ``T_true``,
-    both in the camera frame (``T @ inv(T_true)``)."""
-    E = T @ np.linalg.inv(T_true)
-    return Rotation.from_matrix(E[:3, :3]).as_rotvec(degrees=True), E[:3, 3]
 
 
 def covered(result: Any, T_true: Mat4) -> bool | None:

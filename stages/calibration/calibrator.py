@@ -452,15 +452,13 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     elif len(runs) == 1 and cfg.wide_box:
         reason = (f"one seeded run in a wide search box (+-{cfg.search_deg:g} deg, +-{cfg.search_m:g} m) with no "
                   "other run to confirm it: far optima lie in such a box; set calibration.repeats to 2 or more")
-    elif uncertain and replaced:
-        reason = (f"the seeded 6-DoF runs disagree, so the translation was held at the initial guess's; their spread "
-                  f"leaves the estimate uncertain beyond {cfg.agree_rotation_deg:g} deg / "
-                  f"{100 * cfg.agree_translation_m:g} cm (2 sigma: {', '.join(uncertain)}): " + _MORE_EVIDENCE)
     elif uncertain:
-        reason = (f"the estimate is uncertain beyond {cfg.agree_rotation_deg:g} deg / "
-                  f"{100 * cfg.agree_translation_m:g} cm (2 sigma: {', '.join(uncertain)}; "
-                  f"{deviations.alike_runs} other seeded run(s) and {deviations.alike_aliases} optima a few lidar "
-                  "rings away score as well): " + _MORE_EVIDENCE)
+        why = ("the seeded 6-DoF runs disagree, so the translation was held at the initial guess's; their spread "
+               "leaves the estimate" if replaced else "the estimate is")
+        sources = ("" if replaced else f"; {deviations.alike_runs} other seeded run(s) and {deviations.alike_aliases} "
+                   "optima a few lidar rings away score as well")
+        reason = (f"{why} uncertain beyond {cfg.agree_rotation_deg:g} deg / {100 * cfg.agree_translation_m:g} cm "
+                  f"(2 sigma: {', '.join(uncertain)}{sources}): " + _MORE_EVIDENCE)
     verdict: Verdict
     if reason:
         verdict = "suspect"

@@ -193,14 +193,13 @@ def axis_deviations(problem: CalibrationProblem, x_best: NDArray[np.float64], x_
     replaced = list(x_replaced or [])
     translation_held = not np.any(free[3:6]) and not replaced
     variance = np.asarray(floor, dtype=np.float64) ** 2
+    T_best = problem.T_camera_lidar(x_best)
     if replaced:
-        T_best = problem.T_camera_lidar(x_best)
         variance = variance + np.mean([camera_delta(problem.T_camera_lidar(x), T_best) ** 2 for x in replaced], axis=0)
     others, aliases = list(x_others), list(x_aliases or [])
     alike = alike_aliases = 0
     if others or aliases:
         scores = band_scores(problem, np.vstack([x_best, *others, *aliases]), BANDS_PER_FRAME)
-        T_best = problem.T_camera_lidar(x_best)
         squares = np.zeros(6)
         farthest = np.zeros(6)
         for k, x in enumerate(others + aliases, start=1):
