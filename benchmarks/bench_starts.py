@@ -3,7 +3,7 @@ and from the log's own tf.
 
 Real logs (``../shared/data/logs``): KITTI, PJLab rig 1 and 2, nuScenes (six cameras, joint, ego-motion),
 loaded as ``tests/test_calibration_real.py`` loads them (the workflow's feature and solver settings).
-Simulated rigs (``fleetcal simulate``, street, intensity feature, written to a temporary folder): 16, 32,
+Simulated rigs (``fleetcal simulate``, street, the workflow's feature, written to a temporary folder): 16, 32,
 64 and 128 beams with the pinhole camera, a rosette lidar, the equidistant fisheye, the wide-angle
 plumb_bob lens whose model folds inside the image (``--wide-angle``, with a VLP-16-like 16 x 1800 lidar, as
 sim-16) and the cylindrical panorama.
@@ -106,6 +106,7 @@ class Outcome:
     axis_errors: list[float] = field(default_factory=list)
     axis_deviations: list[float] = field(default_factory=list)
     reason: str = ""
+    feature_columns: list[int] = field(default_factory=list)
 
 
 @dataclass
@@ -141,13 +142,12 @@ def load_sim(name: str, out: Path, quick: bool) -> Case:
     truth = load_truth(truth_path_for(log))
     pair = truth["pairs"][0]
     config = Config()
-    config.calibration.feature = "intensity"
     config.calibration.frames = frames
     with open_log(log) as reader:
         tree = load_tf_tree(reader)
         col = collect_frames(reader, truth["lidar_topic"], pair["camera_topic"], config, tree)
         T_tf = initial_guess(tree, col.lidar_frame, col.camera_frame, None)
-    solver = solver_config(config)  # what ``fleetcal calibrate --feature intensity`` runs
+    solver = solver_config(config)  # what ``fleetcal calibrate`` runs
     return Case(col.frames, np.asarray(pair["T_camera_lidar"], dtype=np.float64), T_tf,
                 _quick(solver) if quick else solver)
 
@@ -220,12 +220,13 @@ def run_start(name: str, case: Case, label: str, T_start: Mat4) -> Outcome:
     seconds = time.perf_counter() - t0
     rot, trans = errors(result.T_camera_lidar, case.T_true)
     print(f"  {name} {label}: {rot:.3f} deg / {100 * trans:.1f} cm {result.verdict} "
-          f"{result.verdict_reason} ({seconds:.0f} s)", flush=True)
+          f"{result.verdict_reason} (feature columns {result.feature_columns}, {seconds:.0f} s)", flush=True)
     err_rot, err_trans = per_axis_errors(result.T_camera_lidar, case.T_true)
     deviations = [float(v) for name in ("std_rotation_deg", "std_translation_m")
                   for v in np.asarray(getattr(result, name, np.full(3, np.nan)), dtype=np.float64).ravel()]
     return Outcome(rot, trans, result.verdict == "suspect", covered(result, case.T_true), seconds, label,
-                   [*map(float, err_rot), *map(float, err_trans)], deviations, result.verdict_reason)
+                   [*map(float, err_rot), *map(float, err_trans)], deviations, result.verdict_reason,
+                   list(result.feature_columns or []))
 
 
 def run_case(name: str, case: Case, starts: int, deg: float, m: float) -> list[Outcome]:

@@ -129,11 +129,13 @@ class CalibrationConfig:
 
     Attributes:
         metric: alignment metric.
-        feature: lidar per-point feature (GOM section 3.1), one of ``LIDAR_FEATURES`` or several
-            joined by ``+`` (``range+normals``: each feature gets its own lidar gradients and the
-            frame's score is their mean; about twice the runtime of one feature). The default is the
-            combination that came out within 0.5 deg / 15 cm most often over the real logs from drifted
-            starts (``benchmarks/bench_starts.py``; ``docs/accuracy.md``).
+        feature: lidar per-point feature (GOM section 3.1): ``auto`` (default) or one of ``LIDAR_FEATURES``
+            or several joined by ``+`` (``range+normals``: each feature gets its own lidar gradients and the
+            frame's score is their mean; about twice the runtime of one feature). ``auto`` (GOM) searches with
+            ``range+normals`` unless the scans carry an intensity that varies and the frames show the image
+            following it: its score falls significantly further than range+normals' when the pose turns
+            off alignment (``stages.calibration.config.SolverConfig.feature_groups``; never on a one-frame
+            log); the parquet's ``feature`` column says which was used. Other metrics: ``range+normals``.
         frames: lidar/camera pairs used.
         particles: particle swarm size.
         iterations: particle swarm iterations.
@@ -167,7 +169,7 @@ class CalibrationConfig:
     """
 
     metric: Literal["gom", "nmi", "levinson"] = "gom"
-    feature: str = "range+normals"
+    feature: str = "auto"
     frames: int = 10
     particles: int = 200
     iterations: int = 100
@@ -194,7 +196,8 @@ class CalibrationConfig:
         return value
 
     def validate(self) -> None:
-        feature_names(self.feature)
+        if self.feature != "auto":
+            feature_names(self.feature)
         for entry in self.readout_s:
             seconds = entry.rpartition("=")[2]
             try:

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fleetcal.pipeline.camera_model import CameraModel, with_model
-from fleetcal.pipeline.config import Config
+from fleetcal.pipeline.config import CalibrationConfig, Config
 from fleetcal.pipeline.engine import Engine
 from fleetcal.pipeline.errors import InputError, ProcessingError, UsageError
 from fleetcal.pipeline.frames import CameraFrame, LidarFrame
@@ -40,12 +40,15 @@ from fleetcal.readers.frames import CameraInfoTracker, load_tf
 from fleetcal.stages.calibration.calibrator import CalibrationResult, ProgressCallback, SearchProgress, calibrate
 from fleetcal.stages.calibration.config import SolverConfig
 from fleetcal.stages.calibration.frame import (
+    AUTO_FEATURE_GROUPS,
+    AUTO_FEATURES,
     CalibrationFrame,
     CameraFeatures,
     LidarFeatures,
     camera_feature_stage,
     join_frame,
     lidar_feature_stage,
+    with_columns,
 )
 from fleetcal.stages.calibration.initialisation import InitialGuess
 from fleetcal.stages.sinks import report
@@ -163,9 +166,25 @@ def parse_initial(text: str) -> Mat4:
     return from_xyz_rpy(*values)
 
 
+def lidar_feature_spec(c: CalibrationConfig) -> str:
+    """What the lidar stage computes for ``c.feature``: ``auto`` is measured per log by GOM only
+    (``SolverConfig.feature_groups``); the other metrics take ``range+normals``."""
+    return "range+normals" if c.feature == "auto" and c.metric != "gom" else c.feature
+
+
+def feature_used(spec: str, result: CalibrationResult) -> str:
+    """The lidar feature the objective used: ``spec``, or for ``auto`` the columns the calibration chose."""
+    if spec != "auto":
+        return spec
+    if result.feature_columns is None:
+        return "range+normals"
+    return "+".join(AUTO_FEATURES[i] for i in result.feature_columns)
+
+
 def solver_config(config: Config) -> SolverConfig:
     c = config.calibration
     return SolverConfig(
+        feature_groups=AUTO_FEATURE_GROUPS if c.feature == "auto" and c.metric == "gom" else (),
         metric=c.metric,
         search_deg=c.search_deg,
         search_m=c.search_m,
@@ -285,7 +304,7 @@ def collect_frames(
         new = [p for p in chosen if p.lidar_stamp_ns not in seen.scans]
         lidar_problems, blank_scans = [], 0
         if new:
-            lidar_stage = _ChosenLidarStage(frozenset(p.lidar_stamp_ns for p in new), c.feature)
+            lidar_stage = _ChosenLidarStage(frozenset(p.lidar_stamp_ns for p in new), lidar_feature_spec(c))
             seen.scans.update({r.stamp_ns if isinstance(r, _SparseScan) else r.lidar.stamp_ns: r
                                for r in engine.map_frames(source, lidar_topic, lidar_stage, ordered=True,
                                                           desc="calibration scans",
@@ -544,9 +563,10 @@ def _pair(
     lidar_topic: str, topic: str, col: _Collected, result: CalibrationResult, T_camera_lidar: Mat4, T_init: Mat4,
     estimate_frame: str = "",
 ) -> PairCalibration:
+    frames = col.frames if result.feature_columns is None else with_columns(col.frames, result.feature_columns)
     return PairCalibration(
         lidar_topic, topic, col.lidar_frame, col.camera_frame, result, T_camera_lidar, T_init,
-        col.frames, col.overlay_image, col.lidar_stamps, col.n_points, col.motion_source, estimate_frame,
+        frames, col.overlay_image, col.lidar_stamps, col.n_points, col.motion_source, estimate_frame,
     )  # fmt: skip
 
 
@@ -621,7 +641,7 @@ def calibration_rows(pairs: list[PairCalibration], feature: str) -> list[dict[st
         roll, pitch, yaw = to_rpy_deg(p.T_camera_lidar)
         rows.append({
             "lidar_topic": p.lidar_topic, "camera_topic": p.camera_topic, "lidar_frame": p.lidar_frame,
-            "camera_frame": p.camera_frame, "metric": p.result.metric, "feature": feature,
+            "camera_frame": p.camera_frame, "metric": p.result.metric, "feature": feature_used(feature, p.result),
             "tx_m": t[0], "ty_m": t[1], "tz_m": t[2], "qx": q[0], "qy": q[1], "qz": q[2], "qw": q[3],
             "roll_deg": roll, "pitch_deg": pitch, "yaw_deg": yaw, "score": p.result.score,
             "initial_score": p.result.initial_score, "frames_used": p.result.frames_used,

@@ -26,9 +26,10 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
     p.add_argument("--lidar", metavar="TOPIC", help="PointCloud2 topic (default: the only one)")
     p.add_argument("--camera", action="append", metavar="TOPIC", help="image topic; repeat for several")
     p.add_argument("--metric", choices=["gom", "nmi", "levinson"])
-    p.add_argument("--feature", metavar="NAME[+NAME]",
-                   help="lidar feature: intensity, range, normals, log_range, or several joined by '+' "
-                        "(scores averaged), e.g. range+normals")
+    p.add_argument("--feature", metavar="auto|NAME[+NAME]",
+                   help="lidar feature: auto (default: range+normals or intensity, whichever explains more of the "
+                        "image's edges), intensity, range, normals, log_range, or several joined by '+' "
+                        "(scores averaged)")
     p.add_argument("--frames", type=int, metavar="N", help="paired frames spread over the log")
     p.add_argument("--search-deg", type=float, metavar="D", help="rotation search half-width, degrees")
     p.add_argument("--search-m", type=float, metavar="M", help="translation search half-width, metres")

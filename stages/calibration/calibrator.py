@@ -36,7 +36,8 @@ from numpy.typing import NDArray
 from fleetcal.pipeline.errors import ProcessingError
 from fleetcal.pipeline.transforms import rotation_error_deg, translation_error_m
 from fleetcal.stages.calibration.config import SolverConfig
-from fleetcal.stages.calibration.frame import CalibrationFrame, Mat4, fold_rectification
+from fleetcal.stages.calibration.feature_choice import frame_sharpness, sharper
+from fleetcal.stages.calibration.frame import CalibrationFrame, Mat4, fold_rectification, usable_groups, with_columns
 from fleetcal.stages.calibration.observability import AXES, translation_profile, weak_axes
 from fleetcal.stages.calibration.problem import CalibrationProblem, embed, ring_slant_deg
 from fleetcal.stages.calibration.pso import pattern_search
@@ -73,7 +74,8 @@ class CalibrationResult:
         frame_scores, frame_initial_scores: (F,) per-frame metric at the estimate / initial guess.
         frames_used: frames in the objective.
         points_used: lidar points per frame after culling and subsampling.
-        runtime_s: wall time of the optimisation (all repeats, not the preparation of frames).
+        runtime_s: wall time of building the objective (its lidar gradients) and the optimisation (all repeats), not
+            the preparation of frames.
         iterations: swarm iterations + polish steps of the returned run.
         evaluations: candidate poses scored over all repeats.
         verdict: ``ok`` (initial guess confirmed), ``recalibrated`` or ``suspect`` (GOM below
@@ -123,6 +125,8 @@ class CalibrationResult:
             (``SolverConfig.estimate_time_offset``); NaN where not estimated; where the log's motion does
             not constrain it, NaN with an infinite deviation (unobservable). An offset's deviation times the
             rig's mean velocity is part of ``std_translation_m``.
+        feature_columns: the columns of the frames' lidar feature the objective used, where
+            ``SolverConfig.feature_groups`` offered alternatives (None: every column).
         readout_s, readout_std_s: the rolling-shutter readout used (the frames' own, or estimated with
             ``estimate_readout``, then with its deviation; unobservable as for the offset), seconds.
     """
@@ -162,6 +166,7 @@ class CalibrationResult:
     time_offset_std_s: float = float("nan")
     readout_s: float = float("nan")
     readout_std_s: float = float("nan")
+    feature_columns: tuple[int, ...] | None = None
 
 
 PARAMETER_NAMES = ("rx", "ry", "rz", "tx", "ty", "tz", "focal_scale")
@@ -277,11 +282,13 @@ def _agreeing(runs: list[_Run], best: int, cfg: SolverConfig) -> int:
 
 
 def _seeded_runs(problem: CalibrationProblem, cfg: SolverConfig, hold_translation: bool,
-                 clock: _SearchClock) -> tuple[list[_Run], int]:
-    """``repeats`` seeded runs and the index of the best, plus up to ``confirm_repeats`` more while no run
-    confirms it. A further run replaces the best only where it scores clearly higher (``_clearly_better``):
-    one that scores as well confirms nothing and does not move the estimate."""
-    runs = [_best_of(problem, cfg.seed + r, hold_translation, clock) for r in range(cfg.repeats)]
+                 clock: _SearchClock, first: _Run | None = None) -> tuple[list[_Run], int]:
+    """``repeats`` seeded runs (``first``: the first seed's, already run) and the index of the best, plus up to
+    ``confirm_repeats`` more while no run confirms it. A further run replaces the best only where it scores
+    clearly higher (``_clearly_better``): one that scores as well confirms nothing and does not move the
+    estimate."""
+    runs = [first if r == 0 and first is not None else _best_of(problem, cfg.seed + r, hold_translation, clock)
+            for r in range(cfg.repeats)]
     best = int(np.argmax([run.score for run in runs]))
     while cfg.repeats > 1 and len(runs) < cfg.repeats + cfg.confirm_repeats and _agreeing(runs, best, cfg) == 0:
         clock.runs += 1
@@ -289,6 +296,51 @@ def _seeded_runs(problem: CalibrationProblem, cfg: SolverConfig, hold_translatio
         if _clearly_better(problem, runs[-1], runs[best]):
             best = len(runs) - 1
     return runs, best
+
+
+def _prepared(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
+              cfg: SolverConfig) -> tuple[CalibrationProblem, TimeShiftField | None]:
+    """The objective of ``frames`` about the initial guess and its clock field, the points of cameras with a
+    known rolling shutter moved to their rows' times."""
+    problem = CalibrationProblem(frames, T_camera_lidar_init, cfg)
+    clock_field = _time_field(problem)
+    if clock_field is not None and any(clock_field.readouts):
+        clock_field.apply(TimeShift(), clock_field.row_fractions(0.5 * (problem.lower + problem.upper)))
+    return problem, clock_field
+
+
+def _feature_problem(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4, cfg: SolverConfig, hold: bool,
+                     clock: _SearchClock) -> tuple[tuple[CalibrationProblem, TimeShiftField | None],
+                                                   tuple[int, ...] | None, _Run | None]:
+    """The objective of the first feature group (``SolverConfig.feature_groups``), or of another whose score
+    the frames show falling significantly further off its optimum (``frame_sharpness``, ``sharper``), each
+    measured at its optimum polished from the first seeded run's estimate on the first group; that group's
+    columns (None: no groups) and the first run where the first group stays."""
+    groups = usable_groups(frames, cfg.feature_groups) if cfg.metric == "gom" else []
+    if not groups:
+        return _prepared(frames, T_camera_lidar_init, cfg), None, None
+    prepared = _prepared(with_columns(frames, groups[0]), T_camera_lidar_init, cfg)
+    if len(groups) == 1 or len(frames) < 2:  # one frame: no spread to test a difference against
+        return prepared, groups[0], None
+    first = _best_of(prepared[0], cfg.seed, hold, clock)
+    chosen = (prepared, groups[0])
+    sharpest = frame_sharpness(prepared[0], _polished(prepared[0], first, hold).x)
+    for group in groups[1:]:
+        other = _prepared(with_columns(frames, group), T_camera_lidar_init, cfg)
+        sharpness = frame_sharpness(other[0], _polished(other[0], first, hold).x)
+        if sharper(sharpness, sharpest):
+            chosen, sharpest = (other, group), sharpness
+    if chosen[1] != groups[0]:  # every run on the chosen objective: the first is searched again
+        clock.runs += 1
+        return chosen[0], chosen[1], None
+    return chosen[0], chosen[1], first
+
+
+def _polished(problem: CalibrationProblem, run: _Run, hold: bool) -> _Run:
+    """``run`` continued by a polish over every frame on ``problem`` (another feature's objective)."""
+    polished = problem.polish_everywhere(run.x, hold, float(problem.evaluate(run.x[None])[0]))
+    return _Run(polished.best_score, polished.best_x, problem.T_camera_lidar(polished.best_x),
+                run.iterations + polished.iterations)
 
 
 def _clearly_better(problem: CalibrationProblem, run: _Run, than: _Run) -> bool:
@@ -357,16 +409,13 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     config = config or SolverConfig()
     cfg = resolve_auto_rules(frames, T_camera_lidar_init, config)
     auto_angle = config.neighbours_by == "auto" and cfg.neighbours_by == "angle"
-    problem = CalibrationProblem(frames, T_camera_lidar_init, cfg)
-    centre = 0.5 * (problem.lower + problem.upper)
-    clock_field = _time_field(problem)
-    if clock_field is not None and any(clock_field.readouts):  # known rolling shutters: points to their rows' times
-        clock_field.apply(TimeShift(), clock_field.row_fractions(centre))
     start = time.perf_counter()
-    init_scores, _ = problem.frame_scores(centre[None])
     hold = cfg.holds_translation
     clock = _SearchClock(progress, cfg.repeats, cfg.max_iterations)
-    runs, best_index = _seeded_runs(problem, cfg, hold, clock)
+    (problem, clock_field), columns, first = _feature_problem(frames, T_camera_lidar_init, cfg, hold, clock)
+    centre = 0.5 * (problem.lower + problem.upper)
+    init_scores, _ = problem.frame_scores(centre[None])
+    runs, best_index = _seeded_runs(problem, cfg, hold, clock, first)
     replaced: list[_Run] = []  # the 6-DoF runs a held estimate replaced: their spread is its deviation
     if (cfg.translation == "auto" and not hold and not cfg.wide_box and cfg.repeats > 1
             and _agreeing(runs, best_index, cfg) == 0):  # the translation may be what the runs disagree on
@@ -478,7 +527,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         weak_translation_axes=weak, ring_spacing_deg=ring_deg,
         sparse_rings=bool(ring_deg > cfg.sparse_rings_above_deg), ring_slant_deg=slant_deg,
         std_rotation_deg=deviations.rotation_deg, std_translation_m=deviations.translation_m,
-        alike_runs=deviations.alike_runs, alike_aliases=deviations.alike_aliases,
+        alike_runs=deviations.alike_runs, alike_aliases=deviations.alike_aliases, feature_columns=columns,
         **_timing_fields(problem, timing, cfg))
 
 

@@ -286,6 +286,23 @@ class SolverConfig:
             ``recalibrated`` vs 0.98 / 53 ``suspect``. Runtime: the GOM terms double (nuScenes 44 vs 27 s).
             Measured again, auto vs off, tf + 2 starts (``bench_starts.py --solver ring_smoothing=off``): median
             rotation error nuScenes 0.56 vs 1.20 deg, simulated 16 beams 0.29 vs 0.95, 32 beams 0.34 vs 0.42.
+        feature_groups: alternative column groups of the frames' (N, C) lidar feature (empty: the objective
+            uses every column); GOM only. The first group is the default: the first seeded run searches with
+            it, and at its estimate each group's objective is polished over every frame and its sharpness
+            measured frame by frame (``feature_choice.frame_sharpness``: how far a frame's score falls when the
+            pose turns 1 deg); another group replaces the first where its frames are sharper by more than
+            their spread allows by chance (``feature_choice.sharper``, a paired test over the frames), and is
+            then the objective of every run, the first searched again (``CalibrationResult.feature_columns``).
+            Letting the first run polished on the new objective stand as its first instead (one swarm fewer:
+            the simulated fisheye of ``benchmarks/bench_calibration_speed.py`` 45.7 s instead of 57-61 s) made
+            the simulated rigs of ``benchmarks/bench_starts.py`` worse: 90th percentile 1.02 deg / 20.2 cm
+            against 0.32 / 28.2, median translation 6.7 against 2.7 cm, the wide-angle rig 0.39 deg median.
+            A log of one frame keeps the first group. The workflow's ``auto`` feature gives range+normals,
+            then intensity (``frame.AUTO_FEATURE_GROUPS``). Measured at the truth's optimum
+            (frames' mean sharpness, range+normals vs intensity, paired t): KITTI 0.043 vs 0.022 (-2.1),
+            PJLab rig1 0.049 vs 0.038 (-2.5), nuScenes 0.019 vs 0.027 (+1.7 on 6 frames, below the bound of
+            2.7): range+normals; every simulated rig of ``benchmarks/bench_starts.py`` (10 frames, images
+            painted with the lidar's reflectivity): intensity, +8.6 to +72; the simulated open yard +11.
         estimate_time_offset, estimate_readout: also estimate the camera's clock offset (within +-
             ``time_range_s``) and its rolling-shutter readout (within 0..2 ``time_range_s``), seconds, after the
             extrinsic search, from the frames' ego-motion (``stages.calibration.timing``).
@@ -340,6 +357,7 @@ class SolverConfig:
     explore_stride: int = 4
     ring_smoothing: str = "auto"
     ring_smoothing_fraction: float = 1.0 / 3.0
+    feature_groups: tuple[tuple[int, ...], ...] = ()
     estimate_time_offset: bool = False
     estimate_readout: bool = False
     time_range_s: float = 0.05
@@ -430,6 +448,8 @@ class SolverConfig:
             raise ConfigError("keep_fraction must be in (0, 1]")
         if not 0 < self.focal_search < 0.5:
             raise ConfigError("focal_search must be in (0, 0.5)")
+        if any(not group or min(group) < 0 for group in self.feature_groups):
+            raise ConfigError("feature_groups must hold non-empty groups of column indices >= 0")
         if self.gradient_viewpoint not in ("auto", "camera", "lidar"):
             raise ConfigError("gradient_viewpoint must be 'auto', 'camera' or 'lidar'")
         if self.gradient_fit not in ("auto", "paper", "lsq"):

@@ -191,14 +191,30 @@ class CameraFeatures:
     image: NDArray[np.generic] | None = None
 
 
+AUTO_FEATURES = ("range", "normals", "intensity")
+"""The columns of the ``auto`` lidar feature, in order; ``intensity`` only where the scan's intensity channel
+takes more than one value."""
+
+AUTO_FEATURE_GROUPS = ((0, 1), (2,))
+"""The alternatives among the ``auto`` columns (``SolverConfig.feature_groups``): the geometry the lidar sees
+(range and normals) and what it reads of the surfaces (intensity)."""
+
+
+def auto_feature_names(lidar: LidarFrame) -> list[str]:
+    """The ``auto`` feature's columns for this scan (``AUTO_FEATURES``)."""
+    intensity = lidar.channel("intensity")
+    varied = intensity is not None and np.unique(np.asarray(intensity)[: 100_000]).size > 1
+    return list(AUTO_FEATURES if varied else AUTO_FEATURES[:2])
+
+
 def lidar_feature_stage(lidar: LidarFrame, feature: str = "range") -> LidarFeatures:
     """Per-frame stage: the lidar feature(s) of one scan (``stages.lidar_features``: ``range``,
     ``intensity``, ``normals``; or ``log_range``, see ``log_range_feature``; several joined by ``+`` give
-    an (N, C) feature)."""
+    an (N, C) feature; ``auto``: the columns of ``auto_feature_names``)."""
     from fleetcal.stages.lidar_features import compute_lidar_feature
 
     columns: list[NDArray[np.floating]] = []
-    for name in feature_names(feature):
+    for name in auto_feature_names(lidar) if feature == "auto" else feature_names(feature):
         if name == "log_range":
             columns.append(log_range_feature(lidar.points_xyz))
         else:
@@ -206,6 +222,18 @@ def lidar_feature_stage(lidar: LidarFrame, feature: str = "range") -> LidarFeatu
                                                  intensity=lidar.channel("intensity")))
     values = columns[0] if len(columns) == 1 else np.stack(columns, axis=1)
     return LidarFeatures(lidar, values)
+
+
+def usable_groups(frames: list[CalibrationFrame], groups: tuple[tuple[int, ...], ...]) -> list[tuple[int, ...]]:
+    """The column groups of ``groups`` that every frame's (N, C) feature holds."""
+    columns = min((np.shape(f.feature)[1] if np.ndim(f.feature) == 2 else 1 for f in frames), default=0)
+    return [g for g in groups if max(g) < columns]
+
+
+def with_columns(frames: list[CalibrationFrame], columns: tuple[int, ...]) -> list[CalibrationFrame]:
+    """The frames with only the feature ``columns`` of their (N, C) feature ((N,) for one column)."""
+    pick: int | list[int] = columns[0] if len(columns) == 1 else list(columns)
+    return [replace(f, feature=np.asarray(f.feature)[:, pick]) for f in frames]
 
 
 def camera_feature_stage(camera: CameraFrame, blur_sigma_px: float | None = None,
