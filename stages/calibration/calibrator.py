@@ -324,10 +324,10 @@ def _feature_problem(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4, 
         return prepared, groups[0], None
     first = _best_of(prepared[0], cfg.seed, hold, clock)
     chosen = (prepared, groups[0])
-    sharpest = frame_sharpness(prepared[0], _polished(prepared[0], first, hold).x)
+    sharpest = frame_sharpness(prepared[0], _polished(prepared[0], first, hold))
     for group in groups[1:]:
         other = _prepared(with_columns(frames, group), T_camera_lidar_init, cfg)
-        sharpness = frame_sharpness(other[0], _polished(other[0], first, hold).x)
+        sharpness = frame_sharpness(other[0], _polished(other[0], first, hold))
         if sharper(sharpness, sharpest):
             chosen, sharpest = (other, group), sharpness
     if chosen[1] != groups[0]:  # every run on the chosen objective: the first is searched again
@@ -336,11 +336,10 @@ def _feature_problem(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4, 
     return chosen[0], chosen[1], first
 
 
-def _polished(problem: CalibrationProblem, run: _Run, hold: bool) -> _Run:
-    """``run`` continued by a polish over every frame on ``problem`` (another feature's objective)."""
-    polished = problem.polish_everywhere(run.x, hold, float(problem.evaluate(run.x[None])[0]))
-    return _Run(polished.best_score, polished.best_x, problem.T_camera_lidar(polished.best_x),
-                run.iterations + polished.iterations)
+def _polished(problem: CalibrationProblem, run: _Run, hold: bool) -> NDArray[np.float64]:
+    """The parameters a polish over every frame on ``problem`` (another feature's objective) reaches from
+    ``run``'s."""
+    return problem.polish_everywhere(run.x, hold, float(problem.evaluate(run.x[None])[0])).best_x
 
 
 def _clearly_better(problem: CalibrationProblem, run: _Run, than: _Run) -> bool:
