@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.special import ndtr, stdtrit
 
 from fleetcal.stages.calibration.problem import CalibrationProblem
 from fleetcal.stages.calibration.uncertainty import SIGNIFICANCE
@@ -29,11 +30,9 @@ def sharper(sharpness: NDArray[np.float64], than: NDArray[np.float64]) -> bool:
     """Whether the per-frame sharpness ``sharpness`` exceeds ``than`` (same frames) significantly: the mean of
     the frames' differences above their standard error times the Student-t bound with the tail of
     ``uncertainty.SIGNIFICANCE`` normal standard errors (2: 2.3 %; a bound of 2.3 on 10 frames, 14 on 2)."""
-    from scipy.stats import norm, t
-
     d = np.asarray(sharpness - than, dtype=np.float64)
     d = d[np.isfinite(d)]
     if d.size < 2:
         return False
-    bound = float(t.ppf(norm.cdf(SIGNIFICANCE), d.size - 1))
+    bound = float(stdtrit(d.size - 1, ndtr(SIGNIFICANCE)))  # scipy.special: scipy.stats takes 0.4 s to import
     return bool(np.mean(d) > bound * float(np.std(d, ddof=1)) / np.sqrt(d.size))
