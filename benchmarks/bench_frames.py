@@ -25,12 +25,9 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.bench_starts import HEADER, SIM, Case, Outcome, run_start, starts_of, summary
-from fleetcal.pipeline.config import Config
+from benchmarks.bench_starts import HEADER, SIM, Case, Outcome, run_start, simulated_case, starts_of, summary
 
 DRIVE_FRAMES = 40
 """Scans (10 Hz) of each simulated drive."""
@@ -41,10 +38,6 @@ STARTS = 2
 def load_drive(name: str, seed: int, frames: int, folder: Path) -> Case:
     """Rig ``name``'s drive of ``DRIVE_FRAMES`` scans (simulated into ``folder`` once per seed) with ``frames`` of
     its pairs chosen as the workflow chooses them."""
-    from fleetcal.readers.frames import load_tf_tree
-    from fleetcal.readers.open import open_log
-    from fleetcal.workflows.calibrate import collect_frames, initial_guess, solver_config
-    from fleetcal.workflows.simulator.truth import load_truth, truth_path_for
     from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log
 
     log = folder / f"{name}-seed{seed}.mcap"
@@ -52,15 +45,7 @@ def load_drive(name: str, seed: int, frames: int, folder: Path) -> Case:
         size = {"width": 1024, "height": 256} if SIM[name].get("panorama") else {"width": 1280, "height": 720}
         simulate_log(log, SimulationOptions(frames=DRIVE_FRAMES, perturb_deg=2.0, perturb_m=0.12, seed=seed,
                                             **size, **SIM[name]), quiet=True)
-    truth = load_truth(truth_path_for(log))
-    pair = truth["pairs"][0]
-    config = Config()
-    config.calibration.frames = frames
-    with open_log(log) as reader:
-        tree = load_tf_tree(reader)
-        col = collect_frames(reader, truth["lidar_topic"], pair["camera_topic"], config, tree)
-        T_tf = initial_guess(tree, col.lidar_frame, col.camera_frame, None)
-    return Case(col.frames, np.asarray(pair["T_camera_lidar"], dtype=np.float64), T_tf, solver_config(config))
+    return simulated_case(log, frames)
 
 
 def _job(name: str, seed: int, frames: int, index: int, folder: str) -> tuple[str, int, int, Outcome]:

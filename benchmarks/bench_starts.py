@@ -127,10 +127,6 @@ def load_real(name: str, quick: bool) -> Case | None:
 
 
 def load_sim(name: str, out: Path, quick: bool) -> Case:
-    from fleetcal.readers.frames import load_tf_tree
-    from fleetcal.readers.open import open_log
-    from fleetcal.workflows.calibrate import collect_frames, initial_guess
-    from fleetcal.workflows.simulator.truth import load_truth, truth_path_for
     from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log
 
     frames = 2 if quick else 10
@@ -139,6 +135,18 @@ def load_sim(name: str, out: Path, quick: bool) -> Case:
     log = out / f"{name}.mcap"
     simulate_log(log, SimulationOptions(frames=frames, perturb_deg=2.0, perturb_m=0.12, seed=1, **size,
                                         **SIM[name]), quiet=True)
+    case = simulated_case(log, frames)
+    return replace(case, config=_quick(case.config)) if quick else case
+
+
+def simulated_case(log: Path, frames: int) -> Case:
+    """The first camera's case of a simulated ``log`` (its truth file beside it) with ``frames`` of its pairs,
+    chosen, prepared and started from the log's tf as ``fleetcal calibrate`` does."""
+    from fleetcal.readers.frames import load_tf_tree
+    from fleetcal.readers.open import open_log
+    from fleetcal.workflows.calibrate import collect_frames, initial_guess
+    from fleetcal.workflows.simulator.truth import load_truth, truth_path_for
+
     truth = load_truth(truth_path_for(log))
     pair = truth["pairs"][0]
     config = Config()
@@ -147,9 +155,8 @@ def load_sim(name: str, out: Path, quick: bool) -> Case:
         tree = load_tf_tree(reader)
         col = collect_frames(reader, truth["lidar_topic"], pair["camera_topic"], config, tree)
         T_tf = initial_guess(tree, col.lidar_frame, col.camera_frame, None)
-    solver = solver_config(config)  # what ``fleetcal calibrate`` runs
     return Case(col.frames, np.asarray(pair["T_camera_lidar"], dtype=np.float64), T_tf,
-                _quick(solver) if quick else solver)
+                solver_config(config))  # what ``fleetcal calibrate`` runs
 
 
 def solver_overrides(pairs: list[str]) -> dict[str, Any]:
