@@ -24,6 +24,7 @@ from fleetcal.stages.registration.covariance_kernels import (
     mcgicp_covariances_kernel,
     sym3_eigh,
 )
+from fleetcal.stages.registration.gicp import conditioning
 from fleetcal.stages.registration.gicp_kernels import (
     ROBUST_CAUCHY,
     ROBUST_HUBER,
@@ -389,6 +390,40 @@ def test_mcgicp_and_color_icp_recover_known_transform_on_coloured_room() -> None
         assert result.converged, method
         tolerance = (0.01, 0.1) if method == "mcgicp" else (0.03, 0.3)
         assert t_err < tolerance[0] and r_err < tolerance[1], (method, t_err, r_err)
+
+
+def _point_to_plane_hessian(points: NDArray[np.float64], normals: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Gauss-Newton Hessian (rotation rad, then translation m) of point-to-plane residuals n . (R p + t)."""
+    J = np.hstack([np.cross(points, normals), normals])
+    return np.asarray(J.T @ J)
+
+
+def _box_faces(rng: np.random.Generator, size: NDArray[np.float64], faces: list[int]) -> tuple[
+        NDArray[np.float64], NDArray[np.float64]]:
+    """Points (and normals) on the chosen faces (0-5: -x, +x, -y, +y, -z, +z) of a box of ``size`` centred on 0."""
+    points, normals = [], []
+    for face in faces:
+        axis, sign = face // 2, (1.0 if face % 2 else -1.0)
+        p = (rng.random((500, 3)) - 0.5) * size
+        p[:, axis] = sign * size[axis] / 2
+        n = np.zeros((500, 3))
+        n[:, axis] = -sign
+        points.append(p)
+        normals.append(n)
+    return np.vstack(points), np.vstack(normals)
+
+
+def test_conditioning_does_not_depend_on_the_scene_size_and_finds_a_free_direction() -> None:
+    rng = np.random.default_rng(4)
+    size = np.array([8.0, 6.0, 3.0])
+    points, normals = _box_faces(rng, size, list(range(6)))
+    room, street = (_point_to_plane_hessian(points * s, normals) for s in (1.0, 30.0))
+    assert conditioning(room) == pytest.approx(conditioning(street), rel=1e-9)
+    assert conditioning(street) > RegistrationConfig().degeneracy_threshold
+    eig = np.linalg.eigvalsh(street)
+    assert eig[0] / eig[-1] < 1e-3  # the 6x6 ratio mixes radians and metres: a large scene looks degenerate
+    corridor = _point_to_plane_hessian(*_box_faces(rng, size, [2, 3, 4, 5]))  # no wall across x
+    assert conditioning(corridor) < 1e-9
 
 
 def test_textured_plane_shift_gicp_degenerate_mcgicp_recovers() -> None:

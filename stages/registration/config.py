@@ -47,7 +47,9 @@ class RegistrationConfig:
         channel_alpha: explicit alpha per descriptor channel (overrides ``channel_weight_m``).
         descriptor_variance_scale: Lambda = scale * (descriptor covariance of the scan), eq. 7.
         descriptor_covariance: explicit Lambda (n x n), overrides the estimate.
-        degeneracy_threshold: flag degenerate when min/max eigenvalue of the 6x6 Hessian is below it.
+        degeneracy_threshold: flag a registration degenerate when the Hessian's ``gicp.conditioning`` is below
+            it: 0.01, a direction fixed ten times less precisely than the best one (the simulated poster
+            corridor's GICP 0.0035, KITTI odometry 00 scan-to-map 0.05-0.26).
         workers: threads for kd-tree queries (-1: all cores).
     """
 
@@ -68,7 +70,7 @@ class RegistrationConfig:
     channel_alpha: tuple[float, ...] | None = None
     descriptor_variance_scale: float = 1.0
     descriptor_covariance: tuple[tuple[float, ...], ...] | None = None
-    degeneracy_threshold: float = 1e-3
+    degeneracy_threshold: float = 1e-2
     workers: int = -1
 
     def __post_init__(self) -> None:

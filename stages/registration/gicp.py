@@ -47,7 +47,8 @@ class RegistrationResult:
             failed pair (too few correspondences).
         hessian_eigenvalues: (6,) ascending eigenvalues of the Gauss-Newton Hessian at the solution
             (parameters: rotation vector rad, translation m, source frame).
-        degenerate: min/max Hessian eigenvalue ratio below the configured threshold.
+        degenerate: the motion is poorly fixed along some direction: ``conditioning`` of the Hessian below
+            ``RegistrationConfig.degeneracy_threshold``.
         n_correspondences: correspondences used in the last linearisation.
         cost_history: cost (eq. 3, robustified) at each iteration's linearisation.
     """
@@ -227,7 +228,6 @@ def register(
         converged = False
         fitness = 0.0 if used == 0 else fitness
     eig = np.asarray(np.linalg.eigvalsh(0.5 * (H + H.T)), dtype=np.float64)
-    ratio = float(eig[0] / eig[-1]) if eig[-1] > 0 else 0.0
     return RegistrationResult(
         T_target_source=T,
         fitness=fitness,
@@ -235,10 +235,31 @@ def register(
         iterations=iterations,
         converged=converged,
         hessian_eigenvalues=eig,
-        degenerate=ratio < config.degeneracy_threshold,
+        degenerate=conditioning(H) < config.degeneracy_threshold,
         n_correspondences=int(used),
         cost_history=history,
     )
+
+
+def conditioning(H: NDArray[np.float64]) -> float:
+    """How evenly the Gauss-Newton Hessian H (6, 6; rotation rad, then translation m) fixes the motion: for the
+    rotation and the translation each, the smallest over the largest eigenvalue of its information once the
+    other is solved for (the Schur complement of the other block); the smaller of the two, 0 where H is
+    singular. Each block is in one unit, so the ratio is the squared ratio of the best to the worst fixed
+    direction's standard deviation, whatever the scene's size (the 6x6 ratio mixes radians with metres: a
+    street 20-50 m across scores 4e-4 to 7e-4 on it however well it is fixed)."""
+    H = 0.5 * (np.asarray(H, dtype=np.float64) + np.asarray(H, dtype=np.float64).T)
+    ratios = []
+    for keep, other in ((slice(0, 3), slice(3, 6)), (slice(3, 6), slice(0, 3))):
+        try:
+            block = H[keep, keep] - H[keep, other] @ np.linalg.solve(H[other, other], H[other, keep])
+        except np.linalg.LinAlgError:
+            return 0.0
+        eig = np.linalg.eigvalsh(0.5 * (block + block.T))
+        if not np.all(np.isfinite(eig)) or eig[-1] <= 0:
+            return 0.0
+        ratios.append(max(float(eig[0] / eig[-1]), 0.0))
+    return min(ratios)
 
 
 def _solve(H: NDArray[np.float64], g: NDArray[np.float64], damping: float) -> NDArray[np.float64]:
