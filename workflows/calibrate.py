@@ -173,11 +173,10 @@ def lidar_feature_spec(c: CalibrationConfig) -> str:
 
 
 def feature_used(spec: str, result: CalibrationResult) -> str:
-    """The lidar feature the objective used: ``spec``, or for ``auto`` the columns the calibration chose."""
-    if spec != "auto":
-        return spec
+    """The lidar feature the objective used: the lidar stage's ``spec`` (``lidar_feature_spec``), or for ``auto``
+    the columns the calibration chose among."""
     if result.feature_columns is None:
-        return "range+normals"
+        return spec
     return "+".join(AUTO_FEATURES[i] for i in result.feature_columns)
 
 
@@ -682,7 +681,7 @@ def write_calibration(pairs: list[PairCalibration], config: Config, out_dir: Pat
     """``calibration.parquet``, ``frames.parquet`` and the report PNGs."""
     out_dir.mkdir(parents=True, exist_ok=True)
     written = [
-        write_rows(calibration_rows(pairs, config.calibration.feature), CALIBRATION_SCHEMA,
+        write_rows(calibration_rows(pairs, lidar_feature_spec(config.calibration)), CALIBRATION_SCHEMA,
                    out_dir / "calibration.parquet"),
         write_rows(frame_rows(pairs), FRAMES_SCHEMA, out_dir / "frames.parquet"),
     ]  # fmt: skip

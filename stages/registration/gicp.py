@@ -248,7 +248,8 @@ def conditioning(H: NDArray[np.float64]) -> float:
     singular. Each block is in one unit, so the ratio is the squared ratio of the best to the worst fixed
     direction's standard deviation, whatever the scene's size (the 6x6 ratio mixes radians with metres: a
     street 20-50 m across scores 4e-4 to 7e-4 on it however well it is fixed)."""
-    H = 0.5 * (np.asarray(H, dtype=np.float64) + np.asarray(H, dtype=np.float64).T)
+    H = np.asarray(H, dtype=np.float64)
+    H = 0.5 * (H + H.T)
     ratios = []
     for keep, other in ((slice(0, 3), slice(3, 6)), (slice(3, 6), slice(0, 3))):
         try:
