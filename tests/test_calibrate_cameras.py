@@ -138,3 +138,55 @@ def test_select_spread_keeps_ends_and_order() -> None:
     pairs = [(i, i + 1) for i in range(10)]
     assert select_spread(pairs, 3) == [(0, 1), (4, 5), (9, 10)]
     assert select_spread(pairs, 20) == pairs
+
+
+def striped_image(angle_deg: float, seed: int) -> NDArray[np.uint8]:
+    """Stripes of random widths across the image at ``angle_deg``: edges in one direction only, so a pair of
+    such images fixes the affine map across the stripes and leaves it free along them."""
+    rng = np.random.default_rng(seed)
+    v, u = np.mgrid[0:HEIGHT, 0:WIDTH].astype(np.float64)
+    th = np.radians(angle_deg)
+    across = u * np.cos(th) + v * np.sin(th)
+    edges = np.cumsum(rng.uniform(6.0, 20.0, 64)) - 200.0
+    levels = rng.integers(0, 256, edges.size + 1)
+    img = levels[np.searchsorted(edges, across)].astype(np.float32)
+    return np.asarray(np.rint(cv2.GaussianBlur(img, (0, 0), 1.0)), dtype=np.uint8)
+
+
+def test_pairs_with_edges_in_one_direction_each_fix_the_map_together() -> None:
+    """Each pair's stripes leave the map free along them; three directions in one objective fix all of it."""
+    from fleetcal.stages.calibration.affine import calibrate_affine_pairs
+    from fleetcal.stages.image_gradients import compute_image_gradients
+
+    A = affine_matrices(TRUE_PARAMS, CENTRE)[0]
+    pairs = []
+    for i, angle in enumerate((0.0, 60.0, 120.0)):
+        base = striped_image(angle, i)
+        b = compute_image_gradients(base, blur_sigma_px=1.0, equalize=True)
+        m = compute_image_gradients(warp_to_moving(base, A), blur_sigma_px=1.0, equalize=True)
+        pairs.append((b.gx, b.gy, m.gx, m.gy))
+    result = calibrate_affine_pairs(pairs, search_px=8.0, search_deg=3.0, n_particles=100, max_iterations=60)
+    corners = np.array([[0.0, 0.0], [WIDTH - 1, 0.0], [0.0, HEIGHT - 1], [WIDTH - 1, HEIGHT - 1]])
+    mapped_err = corners @ (result.A_base_moving[:, :2] - A[:, :2]).T + (result.A_base_moving[:, 2] - A[:, 2])
+    assert np.max(np.linalg.norm(mapped_err, axis=1)) < 0.5, f"corners off by {mapped_err} px"
+    assert result.pair_params.shape == (3, 6)
+
+
+def test_gradients_on_dask_workers_equal_the_in_process_ones(tmp_path: Path) -> None:
+    from fleetcal.pipeline.config import Config
+    from fleetcal.pipeline.engine import Engine
+    from fleetcal.readers.open import open_log
+    from fleetcal.workflows.calibrate_cameras import collect_gradient_pairs
+
+    log_path = tmp_path / "rig.mcap"
+    write_rig_log(log_path, n_frames=4, moving_offset_ns=3_000_000)
+    with open_log(log_path) as reader:
+        in_process, stamps = collect_gradient_pairs(reader, "/cam_a/image_raw", "/cam_b/image_raw", Config())
+        with Engine(workers=2, quiet=True) as engine:
+            on_workers, stamps_workers = collect_gradient_pairs(reader, "/cam_a/image_raw", "/cam_b/image_raw",
+                                                                Config(), engine)
+    assert stamps == stamps_workers and len(stamps) == 4
+    for (base, moving), (base_w, moving_w) in zip(in_process, on_workers, strict=True):
+        for a, b in ((base, base_w), (moving, moving_w)):
+            np.testing.assert_array_equal(a.gx, b.gx)
+            np.testing.assert_array_equal(a.gy, b.gy)

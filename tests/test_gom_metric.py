@@ -23,6 +23,7 @@ from fleetcal.stages.calibration import (
     compute_sphere_gradients,
     score_landscape,
 )
+from fleetcal.stages.calibration import metric_kernels as mk
 from fleetcal.stages.calibration.affine import affine_matrices
 from fleetcal.stages.calibration.gom_channels import GomChannels
 from fleetcal.stages.calibration.metrics import (
@@ -389,6 +390,30 @@ def test_camera_stage_keeps_gradients_at_the_stride_of_its_blur() -> None:
         features = camera_feature_stage(CameraFrame(1, "/cam", "cam", image, "mono8", camera=camera))
         assert sampling_stride(default_blur_sigma_px(width)) == stride == features.gradients.stride
         assert features.gradients.gxy.shape == (-(-height // stride), -(-width // stride), 2)
+
+
+def test_affine_gom_kernel_matches_numpy_reference() -> None:
+    """The camera-camera GOM kernel against the reference: pixels mapped by each affine, the base gradient sampled
+    by the reference bicubic, the moving gradient carried by the inverse transpose of the map's linear part."""
+    rng = np.random.default_rng(7)
+    height, width = 40, 50
+    planes = rng.normal(size=(height, width, 2))
+    uv = rng.uniform([0.0, 0.0], [width - 1.0, height - 1.0], size=(300, 2))
+    gx, gy = rng.normal(size=300), rng.normal(size=300)
+    theta = np.arctan2(gy, gx)
+    params = np.array([[0.0, 0.0, 0.0, 1.0, 1.0, 0.0], [2.5, -1.2, 4.0, 1.03, 0.98, 0.02]])
+    affines = affine_matrices(params, ((width - 1) / 2, (height - 1) / 2))
+    num, den, count = mk.gom_affine_batch_kernel(uv, np.cos(2 * theta), np.sin(2 * theta), np.hypot(gx, gy),
+                                                 planes, np.ones((height, width), np.uint8), affines)
+    for k, A in enumerate(affines):
+        mapped = uv @ A[:, :2].T + A[:, 2]
+        inside = np.all((mapped >= 0) & (mapped <= [width - 1.0, height - 1.0]), axis=1)
+        carried = np.column_stack([gx, gy])[inside] @ np.linalg.inv(A[:, :2])
+        image_gx = bicubic_reference(planes[:, :, 0], mapped[inside])
+        image_gy = bicubic_reference(planes[:, :, 1], mapped[inside])
+        assert count[k] == inside.sum()
+        assert num[k] / (2 * den[k]) == pytest.approx(
+            gom_reference(carried[:, 0], carried[:, 1], np.hypot(gx, gy)[inside], image_gx, image_gy), abs=1e-9)
 
 
 def test_affine_camera_camera_recovers_known_warp() -> None:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from functools import partial
@@ -266,12 +266,14 @@ class _ChosenCameraStage:
         return camera_feature_stage(camera, keep_image=camera.stamp_ns == self.first_ns, keep_grey=self.grey)
 
 
-def calibration_engine(config: Config, quiet: bool = True) -> Engine:
+def calibration_engine(config: Config, quiet: bool = True,
+                       warmups: Sequence[Callable[[], None]] = STAGE_WARMUPS) -> Engine:
     """The engine of a ``calibrate`` run: in process unless a scheduler or a worker count is configured (a
-    handful of frames does not pay for starting a local cluster)."""
+    handful of frames does not pay for starting a local cluster); ``warmups`` as ``Engine``'s (the lidar and
+    image stages' kernels by default)."""
     configured = config.engine.scheduler is not None or config.engine.workers is not None
     return Engine(scheduler=config.engine.scheduler, workers=config.engine.workers if configured else 0,
-                  quiet=quiet, warmups=STAGE_WARMUPS)
+                  quiet=quiet, warmups=warmups)
 
 
 def collect_frames(

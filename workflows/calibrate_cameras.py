@@ -3,14 +3,12 @@
 Steps: pair the two image topics by header stamp (nearest within ``io.pairing_tolerance_ns``) ->
 keep ``calibration.frames`` pairs spread over the log -> gradients of each image (grey, histogram
 equalisation, Gaussian blur ``default_blur_sigma_px(width)``,
-Sobel) -> ``calibrate_affine`` on each pair -> the median of the per-pair parameters ->
-``camera_camera.parquet``.
+Sobel) -> ``calibrate_affine_pairs``: one affine map maximising GOM summed over every pair, as the
+lidar-camera objective is averaged over frames (one swarm whatever the number of pairs, the swarm on at
+most ``AFFINE_SWARM_PIXELS`` pixels of all pairs, the polish on all of them) -> ``camera_camera.parquet``.
 
-``calibrate_affine`` takes one image pair, so the metric is not averaged over pairs: each pair is
-solved on its own and the result is the element-wise median of the six parameters (tx, ty, rotation,
-scale x, scale y, shear), robust to a pair that locked onto a wrong optimum. ``score`` and
-``initial_score`` are the medians of the per-pair scores. Images are used as recorded (not
-undistorted); the affine map is in raw pixel coordinates, moving image -> base image.
+``params_std`` (JSON) is the spread of the pairs' own optima polished from the estimate. Images are used
+as recorded (not undistorted); the affine map is in raw pixel coordinates, moving image -> base image.
 """
 
 from __future__ import annotations
@@ -28,13 +26,16 @@ import pyarrow as pa
 from numpy.typing import NDArray
 
 from fleetcal.pipeline.config import Config
-from fleetcal.pipeline.errors import DecodeError, InputError, UsageError
+from fleetcal.pipeline.engine import Engine
+from fleetcal.pipeline.errors import InputError, UsageError
+from fleetcal.pipeline.frames import CameraFrame
 from fleetcal.readers.base import LogReader
-from fleetcal.readers.frames import IMAGE_TYPES, decode_camera_image, require_topic
-from fleetcal.stages.calibration.affine import AffineResult, affine_matrices, calibrate_affine
+from fleetcal.readers.frames import IMAGE_TYPES, require_topic
+from fleetcal.stages.calibration.affine import AffineResult, calibrate_affine_pairs
 from fleetcal.stages.calibration.frame import default_blur_sigma_px
 from fleetcal.stages.image_gradients import ImageGradients, compute_image_gradients
 from fleetcal.stages.sinks.tables import write_rows
+from fleetcal.workflows.frame_sources import LogFrames
 from fleetcal.workflows.pairing import pair_stamps, raw_header_stamp_ns
 
 log = logging.getLogger(__name__)
@@ -77,13 +78,13 @@ class CameraCameraCalibration:
 
     Attributes:
         base_topic, moving_topic: image topics.
-        A_base_moving: (2, 3) moving pixels (u, v, 1) -> base pixels, from the median parameters.
-        params: (6,) median tx, ty (px), rotation (deg), scale x, scale y, shear.
-        score, initial_score: median per-pair GOM at the estimate and at the identity map.
-        frames_used: image pairs solved.
+        A_base_moving: (2, 3) moving pixels (u, v, 1) -> base pixels.
+        params: (6,) tx, ty (px), rotation (deg), scale x, scale y, shear.
+        score, initial_score: GOM over every pair at the estimate and at the identity map.
+        frames_used: image pairs in the objective.
         runtime_s: wall time from pairing to the result, seconds.
         stamps_ns: (base stamp, moving stamp) of each pair used.
-        per_pair: the ``AffineResult`` of each pair.
+        pair_params: (pairs, 6) each pair's own optimum polished from ``params``.
     """
 
     base_topic: str
@@ -95,11 +96,11 @@ class CameraCameraCalibration:
     frames_used: int
     runtime_s: float
     stamps_ns: list[tuple[int, int]] = field(default_factory=list)
-    per_pair: list[AffineResult] = field(default_factory=list)
+    pair_params: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 6)))
 
     def summary(self) -> dict[str, Any]:
         tx, ty, rot, sx, sy, shear = (float(v) for v in self.params)
-        spread = np.std([r.params for r in self.per_pair], axis=0) if self.per_pair else np.zeros(6)
+        spread = np.std(self.pair_params, axis=0) if len(self.pair_params) else np.zeros(6)
         return {
             "base_topic": self.base_topic,
             "moving_topic": self.moving_topic,
@@ -130,76 +131,91 @@ def _gradients(image: NDArray[Any]) -> ImageGradients:
     return compute_image_gradients(image, blur_sigma_px=default_blur_sigma_px(int(image.shape[1])), equalize=True)
 
 
+@dataclass(frozen=True)
+class _GradientStage:
+    """Engine stage: the gradients of the images at ``log_times_ns`` (others: None), with their log time."""
+
+    log_times_ns: frozenset[int]
+
+    def __call__(self, camera: CameraFrame) -> tuple[int, ImageGradients] | None:
+        if camera.log_time_ns not in self.log_times_ns:
+            return None
+        return camera.log_time_ns, _gradients(camera.image)
+
+
+def _stamps(reader: LogReader, topics: tuple[str, str]) -> dict[str, list[tuple[int, int]]]:
+    """(header stamp, log time) in ns of every message of each image topic; nothing is decoded."""
+    stamps: dict[str, list[tuple[int, int]]] = {topic: [] for topic in topics}
+    for raw in reader.messages(topics=list(topics)):
+        stamps[raw.topic].append((raw_header_stamp_ns(raw, reader), raw.log_time_ns))
+    return stamps
+
+
 def collect_gradient_pairs(
-    reader: LogReader, base_topic: str, moving_topic: str, config: Config
+    reader: LogReader, base_topic: str, moving_topic: str, config: Config, engine: Engine | None = None
 ) -> tuple[list[tuple[ImageGradients, ImageGradients]], list[tuple[int, int]]]:
     """Gradients of up to ``calibration.frames`` image pairs (nearest stamps) spread over the log.
 
-    Two passes: header stamps only (nothing decoded), then only the chosen images are decoded; each
-    image is reduced to its gradients at once. Returns the gradient pairs and their (base, moving)
-    stamps in ns.
+    Header stamps first (nothing decoded), then only the chosen images are decoded and reduced to their
+    gradients, on ``engine`` (None: in process). Returns the gradient pairs and their (base, moving) stamps in ns.
 
     Raises:
         InputError: a topic is missing / not an image topic, or no pair is within the tolerance.
     """
-    types = {t: require_topic(reader, t, IMAGE_TYPES) for t in (base_topic, moving_topic)}
-    stamps: dict[str, list[int]] = {base_topic: [], moving_topic: []}
-    for raw in reader.messages(topics=[base_topic, moving_topic]):
-        stamps[raw.topic].append(raw_header_stamp_ns(raw, reader))
+    for topic in (base_topic, moving_topic):
+        require_topic(reader, topic, IMAGE_TYPES)
+    stamps = _stamps(reader, (base_topic, moving_topic))
+    base, moving = stamps[base_topic], stamps[moving_topic]
     tolerance = config.io.pairing_tolerance_ns
-    matched = pair_stamps(stamps[base_topic], stamps[moving_topic], tolerance)
+    matched = pair_stamps([s for s, _ in base], [s for s, _ in moving], tolerance)
     if not matched:
         raise InputError(
             f"no image on {base_topic} has an image on {moving_topic} within {tolerance / 1e6:g} ms "
-            f"({len(stamps[base_topic])} and {len(stamps[moving_topic])} images)"
+            f"({len(base)} and {len(moving)} images)"
         )
     chosen = select_spread(matched, config.calibration.frames)
-    wanted = {base_topic: {b for b, _ in chosen}, moving_topic: {m for _, m in chosen}}
-    grads: dict[tuple[str, int], ImageGradients] = {}
-    seen = {base_topic: -1, moving_topic: -1}
-    for raw in reader.messages(topics=[base_topic, moving_topic]):
-        seen[raw.topic] += 1
-        index = seen[raw.topic]
-        if index not in wanted[raw.topic]:
-            continue
-        try:
-            frame = decode_camera_image(types[raw.topic], reader.deserialize(raw), raw.topic, raw.log_time_ns)
-        except DecodeError as err:
-            log.warning("skipping an undecodable image on %s at log time %d: %s", raw.topic, raw.log_time_ns, err)
-            continue
-        grads[(raw.topic, index)] = _gradients(frame.image)
+    source = LogFrames(reader.paths, config.io.allow_truncated)
+    own = engine is None
+    engine = Engine(workers=0, quiet=True) if engine is None else engine
+    try:
+        grads = {(topic, t): g for topic, times in ((base_topic, [base[b][1] for b, _ in chosen]),
+                                                     (moving_topic, [moving[m][1] for _, m in chosen]))
+                 for t, g in engine.map_frames(source, topic, _GradientStage(frozenset(times)), ordered=True,
+                                               desc=f"{topic} gradients", log_times_ns=times)}
+        for message in engine.stats.skip_examples:
+            log.warning("skipping an undecodable image: %s", message)
+    finally:
+        if own:
+            engine.close()
     out: list[tuple[ImageGradients, ImageGradients]] = []
     out_stamps: list[tuple[int, int]] = []
     for b, m in chosen:
-        if (base_topic, b) in grads and (moving_topic, m) in grads:
-            out.append((grads[(base_topic, b)], grads[(moving_topic, m)]))
-            out_stamps.append((stamps[base_topic][b], stamps[moving_topic][m]))
+        key_b, key_m = (base_topic, base[b][1]), (moving_topic, moving[m][1])
+        if key_b in grads and key_m in grads:
+            out.append((grads[key_b], grads[key_m]))
+            out_stamps.append((base[b][0], moving[m][0]))
     if not out:
         raise InputError(f"none of the {len(chosen)} paired images on {base_topic} / {moving_topic} could be decoded")
     return out, out_stamps
 
 
-def calibrate_cameras(reader: LogReader, base_topic: str, moving_topic: str, config: Config) -> CameraCameraCalibration:
-    """Affine map from ``moving_topic``'s image pixels to ``base_topic``'s (median over image pairs)."""
+def calibrate_cameras(reader: LogReader, base_topic: str, moving_topic: str, config: Config,
+                      engine: Engine | None = None) -> CameraCameraCalibration:
+    """Affine map from ``moving_topic``'s image pixels to ``base_topic``'s (one objective over the image pairs);
+    the images' gradients are computed on ``engine`` (None: in process)."""
     start = time.perf_counter()
-    pairs, stamps = collect_gradient_pairs(reader, base_topic, moving_topic, config)
+    pairs, stamps = collect_gradient_pairs(reader, base_topic, moving_topic, config, engine)
     c = config.calibration
-    results: list[AffineResult] = []
-    for i, (base, moving) in enumerate(pairs):
-        results.append(calibrate_affine(
-            base.gx, base.gy, moving.gx, moving.gy, search_px=AFFINE_SEARCH_PX, search_deg=c.search_deg,
-            keep_fraction=AFFINE_KEEP_FRACTION, n_particles=c.particles, max_iterations=c.iterations,
-            seed=i,
-        ))  # fmt: skip
-        log.info("pair %d: params %s score %.4f (identity %.4f)", i, results[-1].params, results[-1].score,
-                 results[-1].initial_score)  # fmt: skip
-    params = np.median(np.stack([r.params for r in results]), axis=0)
-    height, width = pairs[0][1].shape
-    A = affine_matrices(params, ((width - 1) / 2.0, (height - 1) / 2.0))[0]
+    result: AffineResult = calibrate_affine_pairs(
+        [(base.gx, base.gy, moving.gx, moving.gy) for base, moving in pairs], search_px=AFFINE_SEARCH_PX,
+        search_deg=c.search_deg, keep_fraction=AFFINE_KEEP_FRACTION, n_particles=c.particles,
+        max_iterations=c.iterations,
+    )  # fmt: skip
+    log.info("%d pairs: params %s score %.4f (identity %.4f)", len(pairs), result.params, result.score,
+             result.initial_score)  # fmt: skip
     return CameraCameraCalibration(
-        base_topic, moving_topic, A, params,
-        float(np.median([r.score for r in results])), float(np.median([r.initial_score for r in results])),
-        len(results), time.perf_counter() - start, stamps, results,
+        base_topic, moving_topic, result.A_base_moving, result.params, result.score, result.initial_score,
+        len(pairs), time.perf_counter() - start, stamps, result.pair_params,
     )  # fmt: skip
 
 
@@ -222,6 +238,7 @@ def write_camera_camera(cal: CameraCameraCalibration, out_dir: Path) -> Path:
 
 def run_cli(args: argparse.Namespace, config: Config) -> int:
     """``fleetcal calibrate-cameras``: the first ``--camera`` is the base, the second moves."""
+    from fleetcal.workflows.calibrate import calibration_engine
     from fleetcal.workflows.cli import emit_json
     from fleetcal.workflows.common import open_logs, prepare_out_dir, table, write_config
 
@@ -231,8 +248,8 @@ def run_cli(args: argparse.Namespace, config: Config) -> int:
     if cameras[0] == cameras[1]:
         raise UsageError(f"calibrate-cameras needs two different cameras, got {cameras[0]} twice")
     out_dir = prepare_out_dir(args.out)
-    with open_logs(args.logs, config, quiet=args.quiet) as reader:
-        cal = calibrate_cameras(reader, cameras[0], cameras[1], config)
+    with open_logs(args.logs, config, quiet=args.quiet) as reader, calibration_engine(config, args.quiet, ()) as engine:
+        cal = calibrate_cameras(reader, cameras[0], cameras[1], config, engine)
     write_config(config, out_dir)
     path = write_camera_camera(cal, out_dir)
     summary = cal.summary()

@@ -56,8 +56,8 @@ def common_options() -> argparse.ArgumentParser:
     common.add_argument("--config", metavar="TOML", help="configuration file (fleetcal.toml)")
     common.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="run on an existing dask cluster")
     common.add_argument("--workers", type=int, default=None,
-                        help="local dask workers (0: in-process; default: in-process for calibrate and map, "
-                             "one per core for process and batch)")
+                        help="local dask workers (0: in-process; default: in-process for calibrate, "
+                             "calibrate-cameras and map, one per core for process and batch)")
     return common
 
 

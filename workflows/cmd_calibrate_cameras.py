@@ -16,7 +16,7 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
     p = sub.add_parser(
         "calibrate-cameras", parents=[common, log_options()], help=COMMANDS["calibrate-cameras"],
         description=__doc__ + "\nThe first --camera is the base image, the second the moving one; the map is in raw "
-        "pixels, moving -> base, the median over the image pairs -> camera_camera.parquet.",
+        "pixels, moving -> base, one objective over the image pairs -> camera_camera.parquet.",
         epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter,
     )  # fmt: skip
     p.add_argument("logs", nargs="+", metavar="LOG", help="log file(s) of one recording")

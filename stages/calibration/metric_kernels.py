@@ -488,7 +488,6 @@ def gom_affine_batch_kernel(pixels_uv: np.ndarray, src_c2: np.ndarray, src_s2: n
         ib = -A[1, 0] / det
         ic = -A[0, 1] / det
         id_ = A[0, 0] / det
-        g = np.zeros(2)
         s_num = 0.0
         s_den = 0.0
         c = 0
@@ -497,8 +496,8 @@ def gom_affine_batch_kernel(pixels_uv: np.ndarray, src_c2: np.ndarray, src_s2: n
             v = A[1, 0] * pixels_uv[i, 0] + A[1, 1] * pixels_uv[i, 1] + A[1, 2]
             if not _in_view(u, v, width, height, mask):
                 continue
-            sample_bicubic(grad_planes, u, v, g)
-            m2 = g[0] * g[0] + g[1] * g[1]
+            gx, gy = sample_bicubic2(grad_planes, u, v)
+            m2 = gx * gx + gy * gy
             c += 1
             if m2 <= 1e-20:
                 continue
@@ -515,7 +514,7 @@ def gom_affine_batch_kernel(pixels_uv: np.ndarray, src_c2: np.ndarray, src_s2: n
             c2 = (tx * tx - ty * ty) / tn
             s2 = 2.0 * tx * ty / tn
             mu = math.sqrt(m2) * src_mag[i]
-            cos2d = ((g[0] * g[0] - g[1] * g[1]) * c2 + 2.0 * g[0] * g[1] * s2) / m2
+            cos2d = ((gx * gx - gy * gy) * c2 + 2.0 * gx * gy * s2) / m2
             s_num += mu * (cos2d + 1.0)
             s_den += mu
         num[p] = s_num
