@@ -27,6 +27,7 @@ from fleetcal.stages.calibration import metric_kernels as mk
 from fleetcal.stages.calibration.affine import affine_matrices
 from fleetcal.stages.calibration.gom_channels import GomChannels
 from fleetcal.stages.calibration.metrics import (
+    ALL_VALID,
     blur_thinning,
     gom_reference,
     least_blur_px,
@@ -123,19 +124,24 @@ def test_bicubic_matches_reference_and_reproduces_cubics() -> None:
 
 def gom_numpy(points: NDArray[np.float64], lgx: NDArray[np.float64], lgy: NDArray[np.float64],
               lmag: NDArray[np.float64], igx: NDArray[np.float64], igy: NDArray[np.float64],
-              camera: CameraModel, T: NDArray[np.float64]) -> tuple[float, int]:
-    """Reference GOM: CameraModel.project, reference bicubic, explicit angles (eq. 9-11)."""
+              camera: CameraModel, T: NDArray[np.float64],
+              mask: NDArray[np.bool_] | None = None) -> tuple[float, int]:
+    """Reference GOM: CameraModel.project, reference bicubic, explicit angles (eq. 9-11); points whose nearest
+    pixel is outside ``mask`` (H, W) are left out."""
     uv, valid = camera.project(apply(T, points))
     h, w = igx.shape
     valid &= (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+    if mask is not None:
+        near = np.floor(uv[valid] + 0.5).astype(np.int64)
+        valid[np.flatnonzero(valid)] = mask[near[:, 1], near[:, 0]]
     gx = bicubic_reference(igx, uv[valid])
     gy = bicubic_reference(igy, uv[valid])
     return gom_reference(lgx[valid], lgy[valid], lmag[valid], gx, gy), int(valid.sum())
 
 
-@pytest.mark.parametrize("model", ["plumb_bob", "plumb_bob zero", "equidistant", "cylindrical"])
+@pytest.mark.parametrize("model", ["plumb_bob", "plumb_bob zero", "equidistant", "cylindrical", "masked"])
 def test_gom_kernel_matches_numpy_reference(model: str) -> None:
-    camera = CAMERAS[model]
+    camera = CAMERAS["plumb_bob" if model == "masked" else model]
     rng = np.random.default_rng(3)
     pts = random_points(800, seed=4)
     lgx, lgy, lmag = rng.standard_normal(800), rng.standard_normal(800), rng.random(800)
@@ -143,13 +149,20 @@ def test_gom_kernel_matches_numpy_reference(model: str) -> None:
     # float32, as Sobel gives them and the scorer keeps them: the reference then sees the same values
     igx = np.asarray(cv2.GaussianBlur(rng.standard_normal(shape), (0, 0), 2.0), dtype=np.float32)
     igy = np.asarray(cv2.GaussianBlur(rng.standard_normal(shape), (0, 0), 2.0), dtype=np.float32)
-    scorer = GomScorer(pts, lgx, lgy, lmag, GradientPlanes.of(igx, igy, camera), camera)
+    mask = None
+    if model == "masked":  # the left third and a band of rows invalid
+        mask = np.ones(shape, dtype=bool)
+        mask[:, : camera.width // 3] = False
+        mask[100:140] = False
+    scorer = GomScorer(pts, lgx, lgy, lmag, GradientPlanes.of(igx, igy, camera, mask), camera)
     poses = np.stack([np.eye(4), from_xyz_rpy(0.1, -0.05, 0.2, 3, -2, 10), from_xyz_rpy(0, 0, 0, 0, 90, 0)])
     batch = scorer.score(poses)
     for k, T in enumerate(poses):
-        ref, n = gom_numpy(pts, lgx, lgy, lmag, igx, igy, camera, T)
+        ref, n = gom_numpy(pts, lgx, lgy, lmag, igx, igy, camera, T, mask)
         assert batch.counts[k] == n
         assert batch.scores[k] == pytest.approx(ref, abs=1e-6)  # float32 taps: about 1e-8 off
+    if mask is not None:  # the mask left points out
+        assert sum(gom_numpy(pts, lgx, lgy, lmag, igx, igy, camera, T)[1] for T in poses) > batch.counts.sum() + 50
     # aligned gradients score 1, perpendicular 0, uncorrelated about 0.5
     uv, valid = camera.project(pts)
     inside = valid & (uv[:, 0] <= camera.width - 1) & (uv[:, 1] <= camera.height - 1)
@@ -320,7 +333,11 @@ def test_gradients_kept_at_the_blurs_stride_score_as_the_whole_image() -> None:
     camera = full.camera
     blurred = GradientPlanes.of_stacked(full.gradients.gxy, camera).blurred(6.0)
     blurred_kept = GradientPlanes.of_stacked(kept.gradients.gxy, camera, stride=stride).blurred(6.0)
-    assert blurred_kept.stride == 2 and blurred_kept.mask.shape == (240, 320)
+    assert blurred_kept.stride == 2 and blurred_kept.mask is ALL_VALID
+    valid = np.ones((camera.height, camera.width), dtype=bool)
+    valid[:, :31] = False
+    masked = GradientPlanes.of_stacked(kept.gradients.gxy, camera, valid, stride=stride).blurred(6.0)
+    np.testing.assert_array_equal(masked.mask, valid[::2, ::2])
     scale = float(np.abs(blurred.planes).max())
     np.testing.assert_allclose(blurred_kept.planes[5:-5, 5:-5], blurred.planes[::2, ::2][5:-5, 5:-5], atol=0.03 * scale)
     with pytest.raises(ProcessingError, match="kept at a stride of 2 pixels"):
@@ -360,7 +377,12 @@ def test_planes_smoothed_across_rings_and_thinned_score_as_the_whole_planes() ->
     image = GradientPlanes.of_stacked(frame.gradients.gxy, camera)
     whole = image.blurred_along(np.array([0.0, 1.0]), 10.0)
     thinned = image.blurred_along(np.array([0.0, 1.0]), 10.0, thinned=True)
-    assert thinned.strides == (1, 8) and thinned.planes.shape == (60, 640, 2) and thinned.mask.shape == (60, 640)
+    assert thinned.strides == (1, 8) and thinned.planes.shape == (60, 640, 2) and thinned.mask is ALL_VALID
+    valid = np.ones((camera.height, camera.width), dtype=bool)
+    valid[:37] = False
+    masked = GradientPlanes.of_stacked(frame.gradients.gxy, camera, valid).blurred_along(np.array([0.0, 1.0]), 10.0,
+                                                                                          thinned=True)
+    np.testing.assert_array_equal(masked.mask, valid[::8])
     np.testing.assert_array_equal(thinned.planes, whole.planes[::8])
     scorer = CalibrationProblem([frame], true_T_camera_lidar(), SolverConfig()).scorers[0][0]
     assert isinstance(scorer, GomScorer) and scorer.image.planes is frame.gradients.gxy

@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 
 from fleetcal.pipeline.errors import ConfigError, ProcessingError
 from fleetcal.stages.calibration import metric_kernels as mk
+from fleetcal.stages.calibration.metrics import ALL_VALID
 from fleetcal.stages.calibration.pso import BatchObjective, particle_swarm, pattern_search
 
 
@@ -97,7 +98,7 @@ def _pair_pixels(pair: GradientPair, keep_fraction: float) -> _Pixels:
     return _Pixels(np.ascontiguousarray(np.column_stack([uu, vv]), dtype=np.float64),
                    np.ascontiguousarray(np.cos(2 * theta)), np.ascontiguousarray(np.sin(2 * theta)),
                    np.ascontiguousarray(mag[vv, uu]), np.ascontiguousarray(np.stack([bgx, bgy], axis=2)),
-                   np.ones(bgx.shape, dtype=np.uint8))
+                   ALL_VALID)
 
 
 def _gom_objective(views: list[_Pixels], centre: tuple[float, float]) -> BatchObjective:

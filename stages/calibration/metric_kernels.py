@@ -146,8 +146,11 @@ def sample_bicubic_kernel(planes: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 @njit(inline="always", **NJIT_FLAGS)
 def _in_view(u: float, v: float, width: int, height: int, mask: np.ndarray) -> bool:
+    """Whether pixel (u, v) lies in the image and its valid ``mask`` (H, W); a (1, 1) mask: every pixel is valid."""
     if not (u >= 0.0 and u <= width - 1.0 and v >= 0.0 and v <= height - 1.0):
         return False
+    if mask.shape[0] == 1 and mask.shape[1] == 1:
+        return True
     return mask[int(v + 0.5), int(u + 0.5)] != 0
 
 

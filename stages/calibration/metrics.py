@@ -12,7 +12,6 @@ candidate extrinsics in one numba call (parallel over poses). Higher is better f
 from __future__ import annotations
 
 import copy
-import functools
 from dataclasses import dataclass
 from typing import Literal
 
@@ -106,17 +105,15 @@ def _planes(image: NDArray[np.floating], dtype: type[np.floating] = np.float32) 
     return np.ascontiguousarray(arr)
 
 
-@functools.lru_cache(maxsize=16)
-def _all_valid(shape: tuple[int, int]) -> NDArray[np.uint8]:
-    """An (H, W) uint8 mask of ones, one per shape for every frame without a mask of its own (instead of a copy
-    per frame: 86 MB over a 40-frame six-camera rig). Shared: never written (left writeable because numba
-    compiles its kernels again for read-only arrays)."""
-    return np.ones(shape, dtype=np.uint8)
+ALL_VALID = np.ones((1, 1), dtype=np.uint8)
+"""The valid mask of every image without a mask of its own, whatever its size: the kernels read a (1, 1) mask as
+all valid (``metric_kernels._in_view``) and skip the lookup per point and pose. Shared: never written (left
+writeable because numba compiles its kernels again for read-only arrays)."""
 
 
 def _mask(mask: NDArray[np.generic] | None, shape: tuple[int, int]) -> NDArray[np.uint8]:
     if mask is None:
-        return _all_valid(shape)
+        return ALL_VALID
     m = np.ascontiguousarray(np.asarray(mask) != 0, dtype=np.uint8)
     if m.shape != shape:
         raise ProcessingError(f"valid mask {m.shape} does not match image {shape}")
@@ -147,7 +144,7 @@ def _kept_mask(mask: NDArray[np.generic] | None, camera: CameraModel, stride: in
     """(H', W') uint8 valid mask at the pixels kept at ``stride`` of ``camera``'s whole-image (H, W) ``mask``
     (None: all valid)."""
     if mask is None:
-        return _all_valid(kept_shape(camera, stride))
+        return ALL_VALID
     return np.ascontiguousarray(_mask(mask, (camera.height, camera.width))[::stride, ::stride])
 
 
@@ -201,7 +198,8 @@ class GradientPlanes:
     Attributes:
         planes: (H', W', 2) float32 image gradient along u and along v (e.g. Sobel) at every ``stride``-th
             pixel: ``planes[i, j]`` is the image's pixel (u, v) = (j * stride, i * stride).
-        mask: (H', W') uint8, 1 where the image is valid, at the same pixels.
+        mask: (H', W') uint8, 1 where the image is valid, at the same pixels; ``ALL_VALID`` (1, 1) for an
+            image without a mask.
         stride: pixels of the image per kept pixel, along rows and columns.
         row_stride: pixels of the image per kept row where it differs from ``stride`` (planes smoothed along
             one direction and thinned, ``blurred_along``): ``planes[i, j]`` is then the image's
@@ -311,11 +309,8 @@ def blur_thinning(direction_uv: NDArray[np.float64], sigma_px: float, blur_px: f
 
 def _thinned_mask(mask: NDArray[np.uint8], k: int, rows: int) -> NDArray[np.uint8]:
     """``mask`` at every k-th column and ``rows``-th row (the shared all-valid mask stays shared)."""
-    if k == rows == 1:
+    if (k == rows == 1) or mask is ALL_VALID:
         return mask
-    thinned_shape = (-(-mask.shape[0] // rows), -(-mask.shape[1] // k))
-    if mask is _all_valid((int(mask.shape[0]), int(mask.shape[1]))):
-        return _all_valid(thinned_shape)
     return np.ascontiguousarray(mask[::rows, ::k])
 
 
