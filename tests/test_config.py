@@ -32,7 +32,7 @@ def test_defaults() -> None:
     assert config.calibration.metric == "gom"
     assert config.engine.workers is None and config.engine.batch_size == 32
     assert config.io.pairing_tolerance_ns == 50_000_000
-    assert config.mapping.channels == "intensity"
+    assert config.mapping.channels == "none"
 
 
 def test_precedence_file_then_env_then_cli(tmp_path: Path) -> None:

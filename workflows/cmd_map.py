@@ -9,8 +9,8 @@ from typing import Any
 from fleetcal.workflows.cli import COMMANDS, emit_json, log_options
 
 EXAMPLES = """examples:
-  fleetcal map drive.mcap --out map/                         # lidar topic detected, intensity channel
-  fleetcal map drive.bag --lidar /velodyne_points --channels none --out map/    # plain GICP
+  fleetcal map drive.mcap --out map/                         # lidar topic detected, GICP
+  fleetcal map drive.bag --lidar /velodyne_points --channels intensity --out map/   # MC-GICP
   fleetcal map rgbd.mcap --channels color --voxel 0.02 --out map/
 
 One recording is mapped in-process (scans prepared on a second thread while the previous one is
@@ -25,7 +25,7 @@ def register(sub: Any, common: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     p.add_argument("logs", nargs="+", metavar="LOG", help="log file(s) of one recording")
     p.add_argument("--lidar", metavar="TOPIC", help="PointCloud2 topic (default: the only one)")
-    p.add_argument("--channels", help="none | intensity | color | combined (default: intensity)")
+    p.add_argument("--channels", help="none (GICP, the default) | intensity | color | combined (MC-GICP)")
     p.add_argument("--voxel", type=float, metavar="M", help="registration voxel size, metres")
     p.add_argument("--map-voxel", type=float, metavar="M", help="map voxel size, metres")
     p.add_argument("--max-corr", type=float, metavar="M", help="largest correspondence distance, metres")
