@@ -69,7 +69,8 @@ def map_log(
     settings: Mapping[str, Any] | None = None,
     workers: int | None = 0,
 ) -> MappingOutcome:
-    """Register every scan of the lidar (MC-GICP odometry) and build the voxel map (map = first scan's frame).
+    """Register every scan of the lidar (GICP or MC-GICP odometry, ``mapping.channels``) and build the voxel map
+    (map = first scan's frame).
 
     ``workers``: 0 runs in-process, None one local dask worker per core.
     """

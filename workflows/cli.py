@@ -24,7 +24,7 @@ COMMANDS = {
     "inspect": "topics, types, counts, rates, time span, frame ids, lidar/camera topics and tf tree",
     "calibrate": "lidar-camera extrinsics without targets (GOM)",
     "calibrate-cameras": "affine map between two cameras' images (GOM)",
-    "map": "MC-GICP odometry and voxel map",
+    "map": "GICP (or MC-GICP) odometry and voxel map",
     "process": "calibrate + colourise + map + write back one log",
     "batch": "process many logs; a manifest records each one",
 }

@@ -1,4 +1,4 @@
-"""Recipe: lidar odometry and a voxel map with MC-GICP over one lidar topic.
+"""Recipe: lidar odometry and a voxel map with GICP or MC-GICP (``mapping.channels``) over one lidar topic.
 
 Per-frame work (decoding, downsampling, covariances, descriptors) runs on the engine in log order; the
 odometry chain (each scan against the local map) and the voxel map consume the prepared scans as they
