@@ -66,7 +66,7 @@ def solve(pairs: list[Any], config: Config, per_pair: bool) -> NDArray[np.float6
     settings: dict[str, Any] = {"search_px": AFFINE_SEARCH_PX, "search_deg": c.search_deg,
                                 "keep_fraction": AFFINE_KEEP_FRACTION, "n_particles": c.particles,
                                 "max_iterations": c.iterations}
-    gradients = [(b.gx, b.gy, m.gx, m.gy) for b, m in pairs]
+    gradients = [(b.gxy, m.gx, m.gy) for b, m in pairs]
     if not per_pair:
         return calibrate_affine_pairs(gradients, **settings).params
     return np.asarray(np.median([calibrate_affine_pairs([g], seed=i, **settings).params

@@ -164,7 +164,7 @@ def test_pairs_with_edges_in_one_direction_each_fix_the_map_together() -> None:
         base = striped_image(angle, i)
         b = compute_image_gradients(base, blur_sigma_px=1.0, equalize=True)
         m = compute_image_gradients(warp_to_moving(base, A), blur_sigma_px=1.0, equalize=True)
-        pairs.append((b.gx, b.gy, m.gx, m.gy))
+        pairs.append((b.gxy, m.gx, m.gy))
     result = calibrate_affine_pairs(pairs, search_px=8.0, search_deg=3.0, n_particles=100, max_iterations=60)
     corners = np.array([[0.0, 0.0], [WIDTH - 1, 0.0], [0.0, HEIGHT - 1], [WIDTH - 1, HEIGHT - 1]])
     mapped_err = corners @ (result.A_base_moving[:, :2] - A[:, :2]).T + (result.A_base_moving[:, 2] - A[:, 2])

@@ -55,8 +55,9 @@ def affine_matrices(params: NDArray[np.floating], centre_uv: tuple[float, float]
     return A
 
 
-GradientPair = tuple[NDArray[np.floating], NDArray[np.floating], NDArray[np.floating], NDArray[np.floating]]
-"""One image pair's gradients (H, W each): base gx, base gy, moving gx, moving gy."""
+GradientPair = tuple[NDArray[np.floating], NDArray[np.floating], NDArray[np.floating]]
+"""One image pair's gradients: the base image's (H, W, 2) along u and v (``ImageGradients.gxy``: a C-contiguous
+float32 array is shared, not copied), the moving image's along u and along v (H', W') each."""
 
 AFFINE_SWARM_PIXELS = 60_000
 """Moving-image pixels the swarm scores over all pairs together: each pair's strongest pixels thinned evenly to
@@ -72,7 +73,7 @@ class _Pixels:
     c2: NDArray[np.float64]
     s2: NDArray[np.float64]
     weight: NDArray[np.float64]
-    planes: NDArray[np.float64]
+    planes: NDArray[np.float32]
     mask: NDArray[np.uint8]
 
     def thinned(self, keep: int) -> _Pixels:
@@ -85,9 +86,10 @@ class _Pixels:
 
 def _pair_pixels(pair: GradientPair, keep_fraction: float) -> _Pixels:
     """The strongest ``keep_fraction`` of the moving image's gradient pixels against the base image's planes."""
-    bgx, bgy, mgx, mgy = (np.asarray(a, dtype=np.float64) for a in pair)
-    if bgx.shape != bgy.shape or mgx.shape != mgy.shape or bgx.ndim != 2 or mgx.ndim != 2:
-        raise ProcessingError("image gradients must be pairs of equal (H, W) arrays")
+    planes = np.ascontiguousarray(pair[0], dtype=np.float32)
+    mgx, mgy = (np.asarray(a, dtype=np.float64) for a in pair[1:])
+    if planes.ndim != 3 or planes.shape[2] != 2 or mgx.shape != mgy.shape or mgx.ndim != 2:
+        raise ProcessingError("image gradients must be a base (H, W, 2) array and two equal moving (H, W) arrays")
     mag = np.hypot(mgx, mgy)
     strong = mag > 0
     if not np.any(strong):
@@ -97,8 +99,7 @@ def _pair_pixels(pair: GradientPair, keep_fraction: float) -> _Pixels:
     theta = np.arctan2(mgy[vv, uu], mgx[vv, uu])
     return _Pixels(np.ascontiguousarray(np.column_stack([uu, vv]), dtype=np.float64),
                    np.ascontiguousarray(np.cos(2 * theta)), np.ascontiguousarray(np.sin(2 * theta)),
-                   np.ascontiguousarray(mag[vv, uu]), np.ascontiguousarray(np.stack([bgx, bgy], axis=2)),
-                   ALL_VALID)
+                   np.ascontiguousarray(mag[vv, uu]), planes, ALL_VALID)
 
 
 def _gom_objective(views: list[_Pixels], centre: tuple[float, float]) -> BatchObjective:
@@ -135,7 +136,8 @@ def calibrate_affine(base_gx: NDArray[np.floating], base_gy: NDArray[np.floating
                      max_iterations: int = 100, seed: int = 0) -> AffineResult:
     """Affine alignment of a moving image to a base image by GOM of their gradients (H, W each)
     (``calibrate_affine_pairs`` of the one pair)."""
-    return calibrate_affine_pairs([(base_gx, base_gy, moving_gx, moving_gy)], search_px, search_deg, search_scale,
+    base_gxy = np.stack([np.asarray(base_gx), np.asarray(base_gy)], axis=2)
+    return calibrate_affine_pairs([(base_gxy, moving_gx, moving_gy)], search_px, search_deg, search_scale,
                                   search_shear, keep_fraction, n_particles, max_iterations, seed)
 
 
@@ -154,9 +156,9 @@ def calibrate_affine_pairs(pairs: Sequence[GradientPair], search_px: float = 20.
     if not 0 < keep_fraction <= 1:
         raise ConfigError("keep_fraction must be in (0, 1]")
     views = [_pair_pixels(pair, keep_fraction) for pair in pairs]
-    if len({(v.planes.shape, tuple(np.asarray(p[2]).shape)) for v, p in zip(views, pairs, strict=True)}) != 1:
+    if len({(v.planes.shape, np.shape(p[1])) for v, p in zip(views, pairs, strict=True)}) != 1:
         raise ProcessingError("every image pair must have the same image sizes")
-    height, width = np.asarray(pairs[0][2]).shape
+    height, width = np.shape(pairs[0][1])
     centre = ((width - 1) / 2.0, (height - 1) / 2.0)
     total = sum(v.uv.shape[0] for v in views)
     share = AFFINE_SWARM_PIXELS * np.array([v.uv.shape[0] for v in views]) / total
