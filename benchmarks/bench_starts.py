@@ -95,7 +95,8 @@ class Case:
 class Outcome:
     """One calibration: errors, verdict, the 2-sigma check (None: no per-axis deviations) and seconds; for
     ``--jsonl``, where it started, its per-axis errors and deviations (camera frame: rotation degrees,
-    translation metres; NaN where the result has none) and the verdict's reason."""
+    translation metres; NaN where the result has none), the verdict's reason and the translation profile
+    (``CalibrationResult.translation_profile``)."""
 
     rot_deg: float
     trans_m: float
@@ -107,6 +108,7 @@ class Outcome:
     axis_deviations: list[float] = field(default_factory=list)
     reason: str = ""
     feature_columns: list[int] = field(default_factory=list)
+    translation_profile: list[float] = field(default_factory=list)
 
 
 @dataclass
@@ -233,7 +235,7 @@ def run_start(name: str, case: Case, label: str, T_start: Mat4) -> Outcome:
                   for v in np.asarray(getattr(result, name, np.full(3, np.nan)), dtype=np.float64).ravel()]
     return Outcome(rot, trans, result.verdict == "suspect", covered(result, case.T_true), seconds, label,
                    [*map(float, err_rot), *map(float, err_trans)], deviations, result.verdict_reason,
-                   list(result.feature_columns or []))
+                   list(result.feature_columns or []), [float(v) for v in result.translation_profile])
 
 
 def run_case(name: str, case: Case, starts: int, deg: float, m: float) -> list[Outcome]:

@@ -80,8 +80,9 @@ class CalibrationResult:
         evaluations: candidate poses scored over all repeats.
         verdict: ``ok`` (initial guess confirmed), ``recalibrated`` or ``suspect`` (GOM below
             ``gom_suspect_below``, a flat optimum, an estimate at the edge of the search box or on a
-            frame's overlap limit, no other seeded run agreeing with the returned one, a single run in a
-            ``SolverConfig.wide_box``, which nothing confirms; or twice a per-axis standard deviation,
+            frame's overlap limit, a single run in a ``SolverConfig.wide_box``, which nothing confirms; or
+            twice a per-axis standard deviation (where no other seeded run agrees with the returned one,
+            every run's distance counts in it),
             ``std_rotation_deg`` / ``std_translation_m``, beyond ``agree_rotation_deg`` /
             ``agree_translation_m``, which for a translation held where the 6-DoF runs disagreed,
             ``SolverConfig.translation``, holds those runs' spread).
@@ -114,10 +115,11 @@ class CalibrationResult:
             verdict ``suspect``.
         std_rotation_deg, std_translation_m: (3,) standard deviations about / along the (reference) camera's
             x, y, z, degrees / metres (``uncertainty.axis_deviations``: seeded runs that score as well as the
-            best, the scan's sampling cell for the translation and the objective's own bias,
-            ``uncertainty.OBJECTIVE_BIAS_DEG``, for the rotation; a held translation's the spread of the 6-DoF runs
-            it replaced); translation NaN where the settings held it (``translation = "hold"``). The verdict is
-            ``suspect`` where twice a deviation exceeds ``agree_rotation_deg`` / ``agree_translation_m``.
+            best, or all of them where none confirms it, the scan's sampling cell for the translation and the
+            objective's own bias, ``uncertainty.OBJECTIVE_BIAS_DEG``, for the rotation; a held translation's the
+            spread of the 6-DoF runs it replaced); translation NaN where the settings held it (``translation =
+            "hold"``). The verdict is ``suspect`` where twice a deviation exceeds ``agree_rotation_deg`` /
+            ``agree_translation_m``.
         alike_runs: other seeded runs that score as well as the best.
         alike_aliases: optima one to three lidar rings away along the lidar's axis that score as well as the
             best (``uncertainty.ring_alias_optima``; probed on rings sparser than ``sparse_rings_above_deg``).
@@ -468,7 +470,8 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
                                  np.linalg.norm([sampling_floor(ring_deg, problem.pixel_deg(), range_m, off_axis),
                                                  _timing_floor(clock_field, timing, cfg, T_best),
                                                  objective_floor()], axis=0),
-                                 problem.free_parameters(hold), aliases, [run.x for run in replaced])
+                                 problem.free_parameters(hold), aliases, [run.x for run in replaced],
+                                 confirmed=len(runs) < 2 or agreeing > 0)
     uncertain = _uncertain_axes(deviations.rotation_deg, deviations.translation_m, cfg)
     reason = ""
     edge = box_edge(x_best, problem.lower, problem.upper, cfg.box_edge_fraction, problem.free_parameters(hold))
@@ -490,9 +493,6 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     elif on_limit:
         reason = (f"the estimate sits on the overlap limit ({'; '.join(on_limit)}): fewer lidar points in view "
                   "would have scored higher; check the initial guess")
-    elif len(runs) > 1 and agreeing == 0:
-        reason = (f"no other of the {len(runs)} seeded runs lands within {cfg.agree_rotation_deg} deg / "
-                  f"{cfg.agree_translation_m} m of the best: optima of similar score lie apart; " + _MORE_EVIDENCE)
     elif not cfg.wide_box and weak_move_m > cfg.weak_move_max_m:
         reason = (f"the translation moved {100 * weak_move_m:.0f} cm along camera axes the log fixes weakly "
                   f"({', '.join(weak)}); more than {100 * cfg.weak_move_max_m:.0f} cm from a trusted initial "
@@ -503,8 +503,9 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     elif uncertain:
         why = ("the seeded 6-DoF runs disagree, so the translation was held at the initial guess's; their spread "
                "leaves the estimate" if replaced else "the estimate is")
+        unconfirmed = "" if agreeing > 0 or len(runs) < 2 else f", none of the {len(runs)} seeded runs confirms another"
         sources = ("" if replaced else f"; {deviations.alike_runs} other seeded run(s) and {deviations.alike_aliases} "
-                   "optima a few lidar rings away score as well")
+                   f"optima a few lidar rings away score as well{unconfirmed}")
         reason = (f"{why} uncertain beyond {cfg.agree_rotation_deg:g} deg / {100 * cfg.agree_translation_m:g} cm "
                   f"(2 sigma: {', '.join(uncertain)}{sources}): " + _MORE_EVIDENCE)
     verdict: Verdict

@@ -7,7 +7,10 @@ Its sources, added in quadrature:
   score difference between the two poses is taken band by band, and the difference counts as real only
   where its mean exceeds twice its standard error over the bands. Runs that score clearly worse found
   local optima and say nothing about the estimate; runs that score as well are equally plausible answers,
-  and their distance from the best is the uncertainty.
+  and their distance from the best is the uncertainty. Where no other run confirms the best (none ended
+  within ``SolverConfig.agree_rotation_deg`` / ``agree_translation_m`` of it), every run counts, alike or
+  not: the search found several optima and nothing says the best one is the scene's, so the estimate is
+  uncertain by at least their spread (twice it then exceeds the agreement distance on some axis).
 - sampling (translation only): where a lidar point lands is known only to its sampling cell, the larger of
   the rings' spacing and a pixel's footprint; a uniform cell of width w has a deviation of w / sqrt(12). At
   the points' typical range that angle is a translation across the line of sight; along the optical axis a
@@ -184,12 +187,14 @@ def ring_alias_optima(problem: CalibrationProblem, x_best: NDArray[np.float64], 
 def axis_deviations(problem: CalibrationProblem, x_best: NDArray[np.float64], x_others: list[NDArray[np.float64]],
                     floor: NDArray[np.float64], free: NDArray[np.bool_],
                     x_aliases: list[NDArray[np.float64]] | None = None,
-                    x_replaced: list[NDArray[np.float64]] | None = None) -> AxisDeviations:
+                    x_replaced: list[NDArray[np.float64]] | None = None,
+                    confirmed: bool = True) -> AxisDeviations:
     """Per-axis deviations of the estimate ``x_best`` (parameters ``free`` were searched), in quadrature: the
-    other seeded runs' estimates ``x_others`` that score as well (``scores_alike``: their root mean square over
-    all other runs), the ring-alias optima ``x_aliases`` that score as well (half the farthest one's distance
-    on each axis), the 6-DoF runs ``x_replaced`` that a held translation replaced (their root mean square) and
-    ``floor`` (``sampling_floor``). The translation's are NaN where it was held and nothing was replaced."""
+    other seeded runs' estimates ``x_others`` that score as well (``scores_alike``; every one where the best is
+    not ``confirmed`` by any: their root mean square over all other runs), the ring-alias optima ``x_aliases``
+    that score as well (half the farthest one's distance on each axis), the 6-DoF runs ``x_replaced`` that a
+    held translation replaced (their root mean square) and ``floor`` (``sampling_floor``). The translation's are
+    NaN where it was held and nothing was replaced."""
     replaced = list(x_replaced or [])
     translation_held = not np.any(free[3:6]) and not replaced
     variance = np.asarray(floor, dtype=np.float64) ** 2
@@ -203,11 +208,12 @@ def axis_deviations(problem: CalibrationProblem, x_best: NDArray[np.float64], x_
         squares = np.zeros(6)
         farthest = np.zeros(6)
         for k, x in enumerate(others + aliases, start=1):
-            if not scores_alike(scores[0] - scores[k]):
+            is_alike = scores_alike(scores[0] - scores[k])
+            if not is_alike and (confirmed or k > len(others)):
                 continue
             delta2 = camera_delta(problem.T_camera_lidar(x), T_best) ** 2
             if k <= len(others):
-                alike += 1
+                alike += int(is_alike)
                 squares += delta2
             else:
                 alike_aliases += 1
