@@ -104,9 +104,10 @@ def test_a_held_translation_is_as_uncertain_as_the_six_dof_runs_it_replaced() ->
 
 
 def test_runs_that_score_worse_count_only_where_no_run_confirms_the_best() -> None:
-    """A seeded run 0.8 deg / 10 cm off the best scores clearly worse over the image bands: it found a local
-    optimum and says nothing of a confirmed estimate (the floor alone), but where no run confirms the best its
-    distance is the deviation, so twice it exceeds the agreement distance."""
+    """Two seeded runs 0.8 deg / 10 cm and 1.4 deg / 20 cm off the best score clearly worse over the image bands:
+    they found local optima and say nothing of a confirmed estimate (the floor alone), but where no run confirms
+    the best each axis's deviation reaches the farthest run along it, so twice it exceeds the agreement
+    distance."""
     from fleetcal.stages.calibration import CalibrationProblem, SolverConfig
     from fleetcal.stages.calibration.uncertainty import BANDS_PER_FRAME, axis_deviations, band_scores
     from tests.test_calibration_synthetic import synthetic_frame, true_T_camera_lidar
@@ -114,14 +115,15 @@ def test_runs_that_score_worse_count_only_where_no_run_confirms_the_best() -> No
     problem = CalibrationProblem([synthetic_frame(0)], true_T_camera_lidar(), SolverConfig(search_deg=2.0,
                                                                                            search_m=0.5))
     free, x_best = problem.free_parameters(), np.zeros(6)
-    x_other = np.array([0.0, 0.8, 0.0, 0.1, 0.0, 0.0])
-    scores = band_scores(problem, np.vstack([x_best, x_other]), BANDS_PER_FRAME)
-    assert not scores_alike(scores[0] - scores[1])
+    x_others = [np.array([0.0, 0.8, 0.0, 0.1, 0.0, 0.0]), np.array([1.0, 1.0, 0.0, 0.2, 0.0, 0.0])]
+    scores = band_scores(problem, np.vstack([x_best, *x_others]), BANDS_PER_FRAME)
+    assert not scores_alike(scores[0] - scores[1]) and not scores_alike(scores[0] - scores[2])
     floor = np.array([0.12, 0.12, 0.12, 0.01, 0.01, 0.03])
-    confirmed = axis_deviations(problem, x_best, [x_other], floor, free)
+    confirmed = axis_deviations(problem, x_best, x_others, floor, free)
     np.testing.assert_allclose(np.r_[confirmed.rotation_deg, confirmed.translation_m], floor, rtol=1e-9)
-    unconfirmed = axis_deviations(problem, x_best, [x_other], floor, free, confirmed=False)
-    delta = camera_delta(problem.T_camera_lidar(x_other), problem.T_camera_lidar(x_best))
-    expected = np.sqrt(floor ** 2 + delta ** 2)
+    unconfirmed = axis_deviations(problem, x_best, x_others, floor, free, confirmed=False)
+    T_best = problem.T_camera_lidar(x_best)
+    deltas = np.array([camera_delta(problem.T_camera_lidar(x), T_best) for x in x_others])
+    expected = np.sqrt(floor ** 2 + np.max(deltas ** 2, axis=0))
     np.testing.assert_allclose(np.r_[unconfirmed.rotation_deg, unconfirmed.translation_m], expected, rtol=1e-9)
     assert unconfirmed.alike_runs == 0 and 2 * np.max(unconfirmed.rotation_deg) > 0.5

@@ -9,8 +9,10 @@ Its sources, added in quadrature:
   local optima and say nothing about the estimate; runs that score as well are equally plausible answers,
   and their distance from the best is the uncertainty. Where no other run confirms the best (none ended
   within ``SolverConfig.agree_rotation_deg`` / ``agree_translation_m`` of it), every run counts, alike or
-  not: the search found several optima and nothing says the best one is the scene's, so the estimate is
-  uncertain by at least their spread (twice it then exceeds the agreement distance on some axis).
+  not: the search found several optima and nothing says the best one is the scene's, so each axis's
+  deviation is at least the farthest run's distance along it. A run that does not agree lies at least
+  1/sqrt(3) of the agreement distance off along some axis, so twice the deviation then exceeds that distance
+  (a root mean square over several runs that disagree on different axes could fall short of it).
 - sampling (translation only): where a lidar point lands is known only to its sampling cell, the larger of
   the rings' spacing and a pixel's footprint; a uniform cell of width w has a deviation of w / sqrt(12). At
   the points' typical range that angle is a translation across the line of sight; along the optical axis a
@@ -190,11 +192,12 @@ def axis_deviations(problem: CalibrationProblem, x_best: NDArray[np.float64], x_
                     x_replaced: list[NDArray[np.float64]] | None = None,
                     confirmed: bool = True) -> AxisDeviations:
     """Per-axis deviations of the estimate ``x_best`` (parameters ``free`` were searched), in quadrature: the
-    other seeded runs' estimates ``x_others`` that score as well (``scores_alike``; every one where the best is
-    not ``confirmed`` by any: their root mean square over all other runs), the ring-alias optima ``x_aliases``
-    that score as well (half the farthest one's distance on each axis), the 6-DoF runs ``x_replaced`` that a
-    held translation replaced (their root mean square) and ``floor`` (``sampling_floor``). The translation's are
-    NaN where it was held and nothing was replaced."""
+    other seeded runs' estimates ``x_others`` that score as well (``scores_alike``: their root mean square over
+    all other runs) or, where no run ``confirmed`` the best, every run (the farthest one's distance on each axis:
+    twice it then exceeds the distance of a run that does not agree, on the axis it differs most along), the
+    ring-alias optima ``x_aliases`` that score as well (half the farthest one's distance on each axis), the 6-DoF
+    runs ``x_replaced`` that a held translation replaced (their root mean square) and ``floor``
+    (``sampling_floor``). The translation's are NaN where it was held and nothing was replaced."""
     replaced = list(x_replaced or [])
     translation_held = not np.any(free[3:6]) and not replaced
     variance = np.asarray(floor, dtype=np.float64) ** 2
@@ -205,19 +208,19 @@ def axis_deviations(problem: CalibrationProblem, x_best: NDArray[np.float64], x_
     alike = alike_aliases = 0
     if others or aliases:
         scores = band_scores(problem, np.vstack([x_best, *others, *aliases]), BANDS_PER_FRAME)
-        squares = np.zeros(6)
-        farthest = np.zeros(6)
+        squares, farthest_run, farthest_alias = np.zeros(6), np.zeros(6), np.zeros(6)
         for k, x in enumerate(others + aliases, start=1):
             is_alike = scores_alike(scores[0] - scores[k])
-            if not is_alike and (confirmed or k > len(others)):
-                continue
             delta2 = camera_delta(problem.T_camera_lidar(x), T_best) ** 2
             if k <= len(others):
-                alike += int(is_alike)
-                squares += delta2
-            else:
+                farthest_run = np.maximum(farthest_run, delta2)
+                if is_alike:
+                    alike += 1
+                    squares += delta2
+            elif is_alike:
                 alike_aliases += 1
-                farthest = np.maximum(farthest, delta2 / 4.0)
-        variance = variance + (squares / len(others) if others else 0.0) + farthest
+                farthest_alias = np.maximum(farthest_alias, delta2 / 4.0)
+        runs = (squares / len(others) if confirmed else farthest_run) if others else 0.0
+        variance = variance + runs + farthest_alias
     std = np.sqrt(variance)
     return AxisDeviations(std[:3], np.full(3, np.nan) if translation_held else std[3:], alike, alike_aliases)
