@@ -81,8 +81,8 @@ class CalibrationResult:
         verdict: ``ok`` (initial guess confirmed), ``recalibrated`` or ``suspect`` (GOM below
             ``gom_suspect_below``, a flat optimum, an estimate at the edge of the search box or on a
             frame's overlap limit, a single run in a ``SolverConfig.wide_box``, which nothing confirms; or
-            twice a per-axis standard deviation (where no other seeded run agrees with the returned one,
-            every run's distance counts in it),
+            twice a per-axis standard deviation (where no other seeded run agrees with the returned one, at
+            least the farthest run's distance along the axis),
             ``std_rotation_deg`` / ``std_translation_m``, beyond ``agree_rotation_deg`` /
             ``agree_translation_m``, which for a translation held where the 6-DoF runs disagreed,
             ``SolverConfig.translation``, holds those runs' spread).
@@ -115,7 +115,7 @@ class CalibrationResult:
             verdict ``suspect``.
         std_rotation_deg, std_translation_m: (3,) standard deviations about / along the (reference) camera's
             x, y, z, degrees / metres (``uncertainty.axis_deviations``: seeded runs that score as well as the
-            best, or all of them where none confirms it, the scan's sampling cell for the translation and the
+            best, or the farthest of all where none confirms it, the scan's sampling cell for the translation and the
             objective's own bias, ``uncertainty.OBJECTIVE_BIAS_DEG``, for the rotation; a held translation's the
             spread of the 6-DoF runs it replaced); translation NaN where the settings held it (``translation =
             "hold"``). The verdict is ``suspect`` where twice a deviation exceeds ``agree_rotation_deg`` /

@@ -185,8 +185,9 @@ class SolverConfig:
         agree_rotation_deg, agree_translation_m: with ``repeats`` >= 2 the returned run must be confirmed
             by another seeded run landing within both of it (the accuracy asked of the real logs: 0.5 deg,
             15 cm); while it is not, up to ``confirm_repeats`` further seeded runs are made, and if none
-            confirms it every run's distance counts in the deviations (``uncertainty.axis_deviations``), twice which
-            then exceeds this distance: ``suspect`` (optima of similar score elsewhere). A further run replaces
+            confirms it each axis's deviation is at least the farthest run's distance along it
+            (``uncertainty.axis_deviations``), twice which then exceeds this distance on some axis: ``suspect``
+            (optima of similar score elsewhere). A further run replaces
             the best only where it scores clearly higher by the image-band test (``uncertainty.scores_alike``):
             letting any higher score replace it took PJLab rig1 from 0.19 deg / 27 cm to 0.64 / 59 on a score
             0.0005 higher, while keeping the best of the first two runs whatever followed left KITTI 5 deg / 10 cm
