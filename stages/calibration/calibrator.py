@@ -454,6 +454,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         trans_std = float("nan") if hold else float(np.sqrt(np.mean([translation_error_m(T, T_best) ** 2
                                                                     for T in Ts])))
     agreeing = _agreeing(runs, best_index, cfg)
+    confirmed = len(runs) < 2 or agreeing > 0
     weak = weak_axes(profile, cfg.weak_translation_ratio)
     weak_move_m = float(np.linalg.norm([x_best[3 + AXES.index(a)] for a in weak])) if weak else 0.0
     chance = {"gom": 0.5, "nmi": 1.0, "levinson": 0.0}[cfg.metric]
@@ -471,7 +472,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
                                                  _timing_floor(clock_field, timing, cfg, T_best),
                                                  objective_floor()], axis=0),
                                  problem.free_parameters(hold), aliases, [run.x for run in replaced],
-                                 confirmed=len(runs) < 2 or agreeing > 0)
+                                 confirmed=confirmed)
     uncertain = _uncertain_axes(deviations.rotation_deg, deviations.translation_m, cfg)
     reason = ""
     edge = box_edge(x_best, problem.lower, problem.upper, cfg.box_edge_fraction, problem.free_parameters(hold))
@@ -503,7 +504,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     elif uncertain:
         why = ("the seeded 6-DoF runs disagree, so the translation was held at the initial guess's; their spread "
                "leaves the estimate" if replaced else "the estimate is")
-        unconfirmed = "" if agreeing > 0 or len(runs) < 2 else f", none of the {len(runs)} seeded runs confirms another"
+        unconfirmed = "" if confirmed else f", none of the {len(runs)} seeded runs confirms another"
         sources = ("" if replaced else f"; {deviations.alike_runs} other seeded run(s) and {deviations.alike_aliases} "
                    f"optima a few lidar rings away score as well{unconfirmed}")
         reason = (f"{why} uncertain beyond {cfg.agree_rotation_deg:g} deg / {100 * cfg.agree_translation_m:g} cm "

@@ -220,7 +220,7 @@ def axis_deviations(problem: CalibrationProblem, x_best: NDArray[np.float64], x_
             elif is_alike:
                 alike_aliases += 1
                 farthest_alias = np.maximum(farthest_alias, delta2 / 4.0)
-        runs = (squares / len(others) if confirmed else farthest_run) if others else 0.0
-        variance = variance + runs + farthest_alias
+        run_variance = squares / max(len(others), 1) if confirmed else farthest_run
+        variance = variance + run_variance + farthest_alias
     std = np.sqrt(variance)
     return AxisDeviations(std[:3], np.full(3, np.nan) if translation_held else std[3:], alike, alike_aliases)
