@@ -158,7 +158,7 @@ def test_rectified_stereo_images_give_the_cameras_own_extrinsic(sim_dir: Path) -
     assert rotation_error_deg(result.T_camera_lidar, T_true) <= 0.3
     assert translation_error_m(result.T_camera_lidar, T_true) <= 0.05
     dropped = [dataclasses.replace(f, camera=f.camera.without_rectification()) for f in frames]
-    ignored = calibrate(dropped, T_init, config)
+    ignored = calibrate(dropped, T_init, dataclasses.replace(config, repeats=1))
     assert rotation_error_deg(ignored.T_camera_lidar, T_true) >= 1.0
 
 
@@ -271,7 +271,7 @@ def test_vlp16_like_scan_is_not_fooled_by_its_rings(sim_dir: Path) -> None:
     assert result.ring_smoothing_px == pytest.approx(4.0, rel=0.1)
     assert rotation_error_deg(result.T_camera_lidar, T_true) <= 0.3
     assert translation_error_m(result.T_camera_lidar, T_true) <= 0.25
-    aliased = calibrate(frames, T_init, SolverConfig(repeats=3, ring_smoothing="off"))
+    aliased = calibrate(frames, T_init, SolverConfig(repeats=1, ring_smoothing="off"))  # every seed: a ring off
     assert aliased.ring_smoothing_px == 0.0
     assert rotation_error_deg(aliased.T_camera_lidar, T_true) > 1.5  # one ring (2 deg) off in pitch
 

@@ -38,10 +38,18 @@ def test_the_channel_the_images_follow_is_chosen_and_calibrates(auto_frames: lis
     further off alignment in every frame, so intensity is the objective and the estimate lands near the
     truth."""
     T_true = true_T_camera_lidar()
-    result = calibrate(auto_frames, perturb(T_true, 2.0, 0.1, seed=3), SMALL)
+    runs_seen: set[int] = set()
+    result = calibrate(auto_frames, perturb(T_true, 2.0, 0.1, seed=3), SMALL,
+                       progress=lambda report: runs_seen.add(report.run))
     assert result.feature_columns == (2,)
     assert rotation_error_deg(result.T_camera_lidar, T_true) <= 0.3
     assert translation_error_m(result.T_camera_lidar, T_true) <= 0.05
+    # chosen before the search: the seeded runs are those of a calibration told to use intensity, no more
+    told_runs: set[int] = set()
+    told = calibrate(with_columns(auto_frames, (2,)), perturb(T_true, 2.0, 0.1, seed=3),
+                     dataclasses.replace(SMALL, feature_groups=()), progress=lambda report: told_runs.add(report.run))
+    np.testing.assert_allclose(result.T_camera_lidar, told.T_camera_lidar, atol=1e-9)
+    assert runs_seen == told_runs
 
 
 def test_an_intensity_that_the_images_do_not_show_is_not_chosen(auto_frames: list[CalibrationFrame]) -> None:

@@ -315,16 +315,19 @@ def _feature_problem(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4, 
                      clock: _SearchClock) -> tuple[tuple[CalibrationProblem, TimeShiftField | None],
                                                    tuple[int, ...] | None, _Run | None]:
     """The objective of the first feature group (``SolverConfig.feature_groups``), or of another whose score
-    the frames show falling significantly further off its optimum (``frame_sharpness``, ``sharper``), each
-    measured at its optimum polished from the first seeded run's estimate on the first group; that group's
-    columns (None: no groups) and the first run where the first group stays."""
+    the frames show falling significantly further off its optimum (``frame_sharpness``, ``sharper``); that
+    group's columns (None: no groups) and the first seeded run where one was searched to choose.
+
+    Each group's sharpness is measured at its own optimum polished over every frame from a trusted start (the
+    initial guess), so the choice costs two polishes, not a search; from a start the box's width says is not
+    trusted (``SolverConfig.wide_box``), from the first seeded run's estimate on the first group."""
     groups = usable_groups(frames, cfg.feature_groups) if cfg.metric == "gom" else []
     if not groups:
         return _prepared(frames, T_camera_lidar_init, cfg), None, None
     prepared = _prepared(with_columns(frames, groups[0]), T_camera_lidar_init, cfg)
     if len(groups) == 1 or len(frames) < 2:  # one frame: no spread to test a difference against
         return prepared, groups[0], None
-    first = _best_of(prepared[0], cfg.seed, hold, clock)
+    first = _best_of(prepared[0], cfg.seed, hold, clock) if cfg.wide_box else None
     chosen = (prepared, groups[0])
     sharpest = frame_sharpness(prepared[0], _polished(prepared[0], first, hold))
     for group in groups[1:]:
@@ -332,16 +335,17 @@ def _feature_problem(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4, 
         sharpness = frame_sharpness(other[0], _polished(other[0], first, hold))
         if sharper(sharpness, sharpest):
             chosen, sharpest = (other, group), sharpness
-    if chosen[1] != groups[0]:  # every run on the chosen objective: the first is searched again
-        clock.runs += 1
+    if chosen[1] != groups[0]:  # every run on the chosen objective: a first run searched to choose is searched again
+        clock.runs += int(first is not None)
         return chosen[0], chosen[1], None
     return chosen[0], chosen[1], first
 
 
-def _polished(problem: CalibrationProblem, run: _Run, hold: bool) -> NDArray[np.float64]:
-    """The parameters a polish over every frame on ``problem`` (another feature's objective) reaches from
-    ``run``'s."""
-    return problem.polish_everywhere(run.x, hold, float(problem.evaluate(run.x[None])[0])).best_x
+def _polished(problem: CalibrationProblem, run: _Run | None, hold: bool) -> NDArray[np.float64]:
+    """The parameters a polish over every frame on ``problem`` reaches from ``run``'s (another feature's
+    estimate), or from the initial guess (the box's centre) where ``run`` is None."""
+    x = run.x if run is not None else 0.5 * (problem.lower + problem.upper)
+    return problem.polish_everywhere(x, hold, float(problem.evaluate(x[None])[0])).best_x
 
 
 def _clearly_better(problem: CalibrationProblem, run: _Run, than: _Run) -> bool:

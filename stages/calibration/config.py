@@ -289,16 +289,16 @@ class SolverConfig:
             Measured again, auto vs off, tf + 2 starts (``bench_starts.py --solver ring_smoothing=off``): median
             rotation error nuScenes 0.56 vs 1.20 deg, simulated 16 beams 0.29 vs 0.95, 32 beams 0.34 vs 0.42.
         feature_groups: alternative column groups of the frames' (N, C) lidar feature (empty: the objective
-            uses every column); GOM only. The first group is the default: the first seeded run searches with
-            it, and at its estimate each group's objective is polished over every frame and its sharpness
-            measured frame by frame (``feature_choice.frame_sharpness``: how far a frame's score falls when the
-            pose turns 1 deg); another group replaces the first where its frames are sharper by more than
-            their spread allows by chance (``feature_choice.sharper``, a paired test over the frames), and is
-            then the objective of every run, the first searched again (``CalibrationResult.feature_columns``).
-            Letting the first run polished on the new objective stand as its first instead (one swarm fewer:
-            the simulated fisheye of ``benchmarks/bench_calibration_speed.py`` 45.7 s instead of 57-61 s) made
-            the simulated rigs of ``benchmarks/bench_starts.py`` worse: 90th percentile 1.02 deg / 20.2 cm
-            against 0.32 / 28.2, median translation 6.7 against 2.7 cm, the wide-angle rig 0.39 deg median.
+            uses every column); GOM only. The first group is the default. Before any search each group's
+            objective is polished over every frame from the initial guess and its sharpness measured frame by
+            frame there (``feature_choice.frame_sharpness``: how far a frame's score falls when the pose turns
+            1 deg); another group replaces the first where its frames are sharper by more than their spread
+            allows by chance (``feature_choice.sharper``, a paired test over the frames), and every seeded run
+            searches the chosen objective (``CalibrationResult.feature_columns``). In a ``wide_box`` (a start
+            not trusted) the polishes start from the first seeded run's estimate on the first group, and that
+            run is searched again where another group wins. Measured from the start over the cases of
+            ``benchmarks/bench_starts.py`` (tf and two starts): the same choice in all 33 as from the first
+            run's estimate, without its search (the simulated fisheye rig 74-78 s instead of 100-139 s).
             A log of one frame keeps the first group. The workflow's ``auto`` feature gives range+normals,
             then intensity (``frame.AUTO_FEATURE_GROUPS``). Measured at the truth's optimum
             (frames' mean sharpness, range+normals vs intensity, paired t): KITTI 0.043 vs 0.022 (-2.1),
