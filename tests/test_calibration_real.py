@@ -132,13 +132,13 @@ def test_kitti_default_settings_from_log_tf() -> None:
 
 @pytest.mark.slow
 def test_kitti_from_drifted_starts_stays_within_bounds() -> None:
-    """A fleet's logs each drift their own way: from three random starts 2 deg / 12 cm off (seeds of
-    ``bench_starts.py``), defaults. Measured 0.14-0.19 deg / 3-5 cm; the camera sphere
-    (``gradient_viewpoint = "camera"``) gave 0.35 / 14, 0.57 / 24 and 0.24 / 12."""
+    """A fleet's logs each drift their own way: from two random starts 2 deg / 12 cm off (seeds of
+    ``bench_starts.py``, which runs five), defaults. Measured 0.14-0.19 deg / 3-5 cm; the camera sphere
+    (``gradient_viewpoint = "camera"``) gave 0.35 / 14 and 0.57 / 24."""
     log_path("kitti_2011_09_26.mcap")
     problem = load_real_frames("kitti_2011_09_26.mcap")
     config = solver_config(Config())
-    for seed in (1001, 1002, 1003):
+    for seed in (1001, 1002):
         result = calibrate(problem.frames, perturb(problem.T_true, 2.0, 0.12, seed=seed), config)
         rot, trans = errors(result.T_camera_lidar, problem.T_true)
         assert rot <= 0.3 and trans <= 0.10, f"start {seed}: {rot:.3f} deg / {trans:.3f} m"
