@@ -109,25 +109,17 @@ def per_axis_errors(T: NDArray[np.float64], T_true: NDArray[np.float64]) -> tupl
     return Rotation.from_matrix(E[:3, :3]).as_rotvec(degrees=True), E[:3, 3]
 
 
-def test_kitti_default_settings_from_log_tf() -> None:
-    """The workflow's defaults (range+normals, the lidar's own sphere, 5 deg / 0.5 m box, 3 seeded
-    repeats): measured 0.176 deg / 3.8 cm (the paper's camera sphere: 0.133 / 7.2 from this start, but
-    0.22-0.57 deg / 10-30 cm from five other starts as far off, where the lidar's gives 0.14-0.24 deg /
-    3-5 cm: ``benchmarks/bench_starts.py``). Two street scenes fix the camera's y (height) firmly."""
+def test_kitti_log_tf_is_drifted_and_the_defaults_take_the_lidar_sphere() -> None:
+    """The log's tf is the drifted calibration, and the workflow's defaults take the lidar's own sphere (the
+    paper's camera sphere: 0.133 deg / 7.2 cm from this start, but 0.22-0.57 deg / 10-30 cm from five other
+    starts as far off, where the lidar's gives 0.14-0.24 deg / 3-5 cm: ``benchmarks/bench_starts.py``). The
+    calibration from it, 0.176 deg / 3.8 cm, is ``tests/test_workflows.py::test_calibrate_kitti_from_log_tf``."""
     log_path("kitti_2011_09_26.mcap")
     problem = load_real_frames("kitti_2011_09_26.mcap")
     assert len(problem.frames) == 2
     rot0, trans0 = errors(problem.T_init, problem.T_true)
-    assert rot0 > 1.5 and trans0 > 0.1  # the log's tf is the drifted calibration
-    result = calibrate(problem.frames, problem.T_init, solver_config(Config()))
-    assert result.gradient_viewpoint == "lidar"
-    rot, trans = errors(result.T_camera_lidar, problem.T_true)
-    assert rot <= 0.3, f"rotation error {rot:.3f} deg"
-    assert trans <= 0.10, f"translation error {trans:.3f} m"
-    assert result.score > result.initial_score
-    assert result.verdict == "recalibrated", result.verdict_reason
-    assert "y" not in result.weak_translation_axes, result.translation_profile
-    assert result.ring_spacing_deg == pytest.approx(0.36, abs=0.03) and not result.sparse_rings
+    assert rot0 > 1.5 and trans0 > 0.1
+    assert resolve_auto_rules(problem.frames, problem.T_init, solver_config(Config())).viewpoint == "lidar"
 
 
 @pytest.mark.slow
@@ -166,23 +158,15 @@ def test_kitti_from_5deg_50cm_off_in_a_wide_box() -> None:
     assert_confirmed_or_ambiguous(result)
 
 
-@pytest.mark.slow
-def test_kitti_from_5deg_off_in_a_box_wide_in_rotation_only() -> None:
+def test_a_box_wide_in_rotation_only_explores_on_the_lidar_sphere() -> None:
     """A mount knocked 5 deg (10 cm) off, searched with ``--search-deg 10`` and the default 0.5 m: a box
-    wide in rotation alone takes the lidar viewpoint and exploration too. This start (seed 4 of 5) ended
-    at 2.18 deg / 63 cm, ``suspect``, on the camera's sphere; measured 0.078 deg / 5.0 cm: the best of the two
-    seeded runs lies 0.25 deg / 32 cm off, unconfirmed, and a confirmation run that scores clearly higher
-    replaces it."""
-    log_path("kitti_2011_09_26.mcap")
-    problem = load_real_frames("kitti_2011_09_26.mcap")
-    T_start = perturb(problem.T_true, 5.0, 0.1, seed=204)
+    wide in rotation alone takes the lidar viewpoint and exploration too. From such a start on KITTI (seed
+    204, search seed 4) the camera's sphere ended at 2.18 deg / 63 cm, ``suspect``; the lidar's measured
+    0.078 deg / 5.0 cm, where a confirmation run that scored clearly higher replaced the unconfirmed best
+    of the two seeded runs (0.25 deg / 32 cm off; ``_clearly_better``, the band test of
+    ``tests/test_uncertainty.py``)."""
     cfg = replace(solver_config(Config()), search_deg=10.0, seed=4)
-    assert (cfg.search_m, cfg.viewpoint, cfg.explores) == (0.5, "lidar", True)
-    result = calibrate(problem.frames, T_start, cfg)
-    rot, trans = errors(result.T_camera_lidar, problem.T_true)
-    assert rot <= 0.3, f"rotation error {rot:.3f} deg"
-    assert trans <= 0.10, f"translation error {trans:.3f} m"
-    assert_confirmed_or_ambiguous(result)
+    assert (cfg.search_m, cfg.viewpoint, cfg.explores, cfg.wide_box) == (0.5, "lidar", True, True)
 
 
 @pytest.mark.slow
@@ -222,9 +206,10 @@ def test_pjlab_two_frames_with_distortion() -> None:
     replaced spread 0.9-1.3 deg and 55-60 cm (2 sigma) about it, its deviations, which cover the truth on every
     axis (9.1 cm off at most). (The camera sphere: 0.238
     deg / 12.1 cm, ``recalibrated``; from 5 other starts as far off it gave 0.27-0.75 deg.) The 15 cm bound
-    is met by not moving the translation, not by estimating it. From a start 2 deg / 11 cm off on another
+    is met by not moving the translation, not by estimating it. (From a start 2 deg / 11 cm off on another
     axis the 6-DoF runs agree on 0.77 deg / 34 cm, having moved the translation 34 cm along axes the
-    profile names weak: ``suspect`` by ``weak_move_max_m`` (``recalibrated`` without that rule)."""
+    profile names weak: ``suspect`` by ``weak_move_max_m``, the case of
+    ``tests/test_calibration_synthetic.py::test_a_long_move_along_weak_axes_from_a_trusted_start_is_suspect``.)"""
     log_path("pjlab_road_rig1")
     problem = load_real_frames("pjlab_road_rig1")
     assert len(problem.frames) == 2
@@ -241,10 +226,6 @@ def test_pjlab_two_frames_with_distortion() -> None:
                                np.linalg.inv(problem.T_init)[:3, 3], atol=1e-9)
     assert rot <= 0.5, f"rotation error {rot:.3f} deg"
     assert trans <= 0.15, f"translation error {trans:.3f} m"
-    moved = calibrate(problem.frames, perturb(problem.T_true, 2.0, 0.12, seed=1001), config)
-    rot, trans = errors(moved.T_camera_lidar, problem.T_true)
-    assert not moved.translation_held and trans > 0.15
-    assert moved.verdict == "suspect" and "the log fixes weakly" in moved.verdict_reason, moved.verdict_reason
 
 
 @pytest.mark.slow
