@@ -304,6 +304,7 @@ def test_calibrate_nuscenes_joint_with_ego_motion(
 
     compensated = _calibrate_json(capsys, ["calibrate", str(log), *cameras, "--joint", "--out", str(tmp_path / "a")])
     assert all(p["motion_compensated"] for p in compensated["pairs"]) and len(compensated["pairs"]) == 6
+    assert all(p["sparse_rings"] and p["ring_slant_deg"] < 5.0 for p in compensated["pairs"])  # level 1.33-deg rings
     monkeypatch.setenv("FLEETCAL_CALIBRATION__MOTION_COMPENSATION", "false")
     monkeypatch.setenv("FLEETCAL_CALIBRATION__REPEATS", "1")  # the control: one seeded run shows the loss
     raw = _calibrate_json(capsys, ["calibrate", str(log), *cameras, "--joint", "--out", str(tmp_path / "b")])
