@@ -307,7 +307,7 @@ def _prepared(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     problem = CalibrationProblem(frames, T_camera_lidar_init, cfg)
     clock_field = _time_field(problem)
     if clock_field is not None and any(clock_field.readouts):
-        clock_field.apply(TimeShift(), clock_field.row_fractions(0.5 * (problem.lower + problem.upper)))
+        clock_field.apply(TimeShift(), clock_field.row_fractions(problem.centre))
     return problem, clock_field
 
 
@@ -318,9 +318,10 @@ def _feature_problem(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4, 
     the frames show falling significantly further off its optimum (``frame_sharpness``, ``sharper``); that
     group's columns (None: no groups) and the first seeded run where one was searched to choose.
 
-    Each group's sharpness is measured at its own optimum polished over every frame from a trusted start (the
-    initial guess), so the choice costs two polishes, not a search; from a start the box's width says is not
-    trusted (``SolverConfig.wide_box``), from the first seeded run's estimate on the first group."""
+    Each group's sharpness is measured on every frame at its own optimum, polished from a trusted start (the
+    initial guess) on the first seeded run's swarm frames (``search_view``), so the choice costs two polishes,
+    not a search; from a start the box's width says is not trusted (``SolverConfig.wide_box``), at the optimum
+    polished over every frame from the first seeded run's estimate on the first group."""
     groups = usable_groups(frames, cfg.feature_groups) if cfg.metric == "gom" else []
     if not groups:
         return _prepared(frames, T_camera_lidar_init, cfg), None, None
@@ -329,10 +330,10 @@ def _feature_problem(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4, 
         return prepared, groups[0], None
     first = _best_of(prepared[0], cfg.seed, hold, clock) if cfg.wide_box else None
     chosen = (prepared, groups[0])
-    sharpest = frame_sharpness(prepared[0], _polished(prepared[0], first, hold))
+    sharpest = frame_sharpness(prepared[0], _polished(prepared[0], first, hold, cfg.seed))
     for group in groups[1:]:
         other = _prepared(with_columns(frames, group), T_camera_lidar_init, cfg)
-        sharpness = frame_sharpness(other[0], _polished(other[0], first, hold))
+        sharpness = frame_sharpness(other[0], _polished(other[0], first, hold, cfg.seed))
         if sharper(sharpness, sharpest):
             chosen, sharpest = (other, group), sharpness
     if chosen[1] != groups[0]:  # every run on the chosen objective: a first run searched to choose is searched again
@@ -341,11 +342,12 @@ def _feature_problem(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4, 
     return chosen[0], chosen[1], first
 
 
-def _polished(problem: CalibrationProblem, run: _Run | None, hold: bool) -> NDArray[np.float64]:
-    """The parameters a polish over every frame on ``problem`` reaches from ``run``'s (another feature's
-    estimate), or from the initial guess (the box's centre) where ``run`` is None."""
-    x = run.x if run is not None else 0.5 * (problem.lower + problem.upper)
-    return problem.polish_everywhere(x, hold, float(problem.evaluate(x[None])[0])).best_x
+def _polished(problem: CalibrationProblem, run: _Run | None, hold: bool, seed: int) -> NDArray[np.float64]:
+    """The parameters a polish on ``problem`` reaches over every frame from ``run``'s (another feature's
+    estimate), or where ``run`` is None from the initial guess (the box's centre) on the seed's swarm frames."""
+    if run is None:
+        return problem.polish_on_view(problem.centre, hold, seed).best_x
+    return problem.polish_everywhere(run.x, hold, float(problem.evaluate(run.x[None])[0])).best_x
 
 
 def _clearly_better(problem: CalibrationProblem, run: _Run, than: _Run) -> bool:
@@ -418,7 +420,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     hold = cfg.holds_translation
     clock = _SearchClock(progress, cfg.repeats, cfg.max_iterations)
     (problem, clock_field), columns, first = _feature_problem(frames, T_camera_lidar_init, cfg, hold, clock)
-    centre = 0.5 * (problem.lower + problem.upper)
+    centre = problem.centre
     init_scores, _ = problem.frame_scores(centre[None])
     runs, best_index = _seeded_runs(problem, cfg, hold, clock, first)
     replaced: list[_Run] = []  # the 6-DoF runs a held estimate replaced: their spread is its deviation

@@ -240,10 +240,14 @@ class CalibrationProblem:
         self._explore_views: dict[tuple[int, ...], ScoringView] = {}  # by the frames they score
         self.evaluations = 0
         self.on_iteration: Callable[[int, float], None] | None = None  # called after each swarm iteration
-        centre = np.zeros((1, self.dim)) + 0.5 * (self.lower + self.upper)
-        init_counts = self._channel_counts(centre)
+        init_counts = self._channel_counts(self.centre[None])
         self.min_counts = [np.maximum(config.min_points, np.floor(config.min_overlap_fraction * c)).astype(np.int64)
                            for c in init_counts]
+
+    @property
+    def centre(self) -> NDArray[np.float64]:
+        """(D,) the box's centre: the initial guess's parameters."""
+        return np.asarray(0.5 * (self.lower + self.upper))
 
     def _ring_smoothing(self, f: CalibrationFrame, T_cam_lidar: Mat4, ring: float) -> tuple[
             float, NDArray[np.float64]]:
@@ -477,7 +481,7 @@ class CalibrationProblem:
         the chosen run's pose on every frame."""
         cfg = self.config
         free = self.free_parameters(hold_translation)
-        centre = 0.5 * (self.lower + self.upper)
+        centre = self.centre
         lower, upper = self.lower[free], self.upper[free]
         search, explore = self.search_view(seed), self.explore_view(seed)
         swarm = particle_swarm(partial(evaluate_embedded, self, base=centre, free=free, view=search), lower, upper,
@@ -501,10 +505,18 @@ class CalibrationProblem:
         return self._polish(np.asarray(x, dtype=np.float64), self.free_parameters(hold_translation), self.full,
                             score)
 
+    def polish_on_view(self, x: NDArray[np.floating], hold_translation: bool, seed: int) -> SwarmResult:
+        """The polish (``pattern_search``) from parameters x (D,) on the seed's swarm frames (``search_view``);
+        its ``best_score`` is scored there."""
+        start = np.asarray(x, dtype=np.float64)
+        view = self.search_view(seed)
+        return self._polish(start, self.free_parameters(hold_translation), view,
+                            float(self.evaluate(start[None], view)[0]))
+
     def _polish(self, x: NDArray[np.float64], free: NDArray[np.bool_], view: ScoringView, score: float) -> SwarmResult:
         """Compass search over the free parameters from x (D,) on ``view`` (x scores ``score`` there), the others
         at the box's centre; the result in all D parameters."""
-        centre = 0.5 * (self.lower + self.upper)
+        centre = self.centre
         lower, upper = self.lower[free], self.upper[free]
         result = pattern_search(partial(evaluate_embedded, self, base=centre, free=free, view=view), x[free],
                                 0.1 * (upper - lower), lower, upper, min_step_fraction=0.005, score_at_x0=score)
