@@ -288,23 +288,22 @@ class SolverConfig:
             ``recalibrated`` vs 0.98 / 53 ``suspect``. Runtime: the GOM terms double (nuScenes 44 vs 27 s).
             Measured again, auto vs off, tf + 2 starts (``bench_starts.py --solver ring_smoothing=off``): median
             rotation error nuScenes 0.56 vs 1.20 deg, simulated 16 beams 0.29 vs 0.95, 32 beams 0.34 vs 0.42.
-        feature_groups: alternative column groups of the frames' (N, C) lidar feature (empty: the objective
-            uses every column); GOM only. The first group is the default. Before any search each group's
-            objective is polished over every frame from the initial guess and its sharpness measured frame by
-            frame there (``feature_choice.frame_sharpness``: how far a frame's score falls when the pose turns
-            1 deg); another group replaces the first where its frames are sharper by more than their spread
-            allows by chance (``feature_choice.sharper``, a paired test over the frames), and every seeded run
-            searches the chosen objective (``CalibrationResult.feature_columns``). In a ``wide_box`` (a start
-            not trusted) the polishes start from the first seeded run's estimate on the first group, and that
-            run is searched again where another group wins. Measured from the start over the cases of
-            ``benchmarks/bench_starts.py`` (tf and two starts): the same choice in all 33 as from the first
-            run's estimate, without its search (the simulated fisheye rig 74-78 s instead of 100-139 s).
-            A log of one frame keeps the first group. The workflow's ``auto`` feature gives range+normals,
-            then intensity (``frame.AUTO_FEATURE_GROUPS``). Measured at the truth's optimum
-            (frames' mean sharpness, range+normals vs intensity, paired t): KITTI 0.043 vs 0.022 (-2.1),
-            PJLab rig1 0.049 vs 0.038 (-2.5), nuScenes 0.019 vs 0.027 (+1.7 on 6 frames, below the bound of
-            2.7): range+normals; every simulated rig of ``benchmarks/bench_starts.py`` (10 frames, images
-            painted with the lidar's reflectivity): intensity, +8.6 to +72; the simulated open yard +11.
+        feature_groups: alternative column groups of the frames' (N, C) lidar feature (empty: the objective uses every
+            column); GOM only. The first group is the default. Before any search each group's objective is polished from
+            the initial guess on the first seeded run's swarm frames, and at that optimum every frame's sharpness is
+            measured (``feature_choice.frame_sharpness``: how far a frame's score falls when the pose turns 1 deg);
+            another group replaces the first where its frames are sharper by more than their spread allows by chance
+            (``feature_choice.sharper``, a paired test over the frames), and every seeded run searches the chosen
+            objective (``CalibrationResult.feature_columns``). In a ``wide_box`` (a start not trusted) the polishes
+            start from the first seeded run's estimate on the first group, and that run is searched again where another
+            group wins. Measured from the start over the cases of ``benchmarks/bench_starts.py`` (tf and two starts):
+            the same choice in all 33 as from the first run's estimate, without its search. A log of one frame keeps the
+            first group. The workflow's ``auto`` feature gives range+normals, then intensity
+            (``frame.AUTO_FEATURE_GROUPS``). Measured at the truth's optimum (frames' mean sharpness, range+normals vs
+            intensity, paired t): KITTI 0.043 vs 0.022 (-2.1), PJLab rig1 0.049 vs 0.038 (-2.5), nuScenes 0.019 vs 0.027
+            (+1.7 on 6 frames, below the bound of 2.7): range+normals; every simulated rig of
+            ``benchmarks/bench_starts.py`` (10 frames, images painted with the lidar's reflectivity): intensity, +8.6 to
+            +72; the simulated open yard +11.
         estimate_time_offset, estimate_readout: also estimate the camera's clock offset (within +-
             ``time_range_s``) and its rolling-shutter readout (within 0..2 ``time_range_s``), seconds, after the
             extrinsic search, from the frames' ego-motion (``stages.calibration.timing``).
