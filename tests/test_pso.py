@@ -108,3 +108,18 @@ def test_exploring_on_a_smooth_objective_escapes_local_maxima() -> None:
 def test_explore_phase_must_end_before_the_iteration_limit() -> None:
     with pytest.raises(ConfigError, match="explore_iterations"):
         particle_swarm(neg_sphere, *BOX, max_iterations=20, explore_objective=neg_sphere, explore_iterations=20)
+
+
+def test_a_screened_swarm_flies_as_the_plain_one() -> None:
+    """Where the screened objective rules out exactly the rows below their floor, nothing else changes."""
+    def screened(x: NDArray[np.float64], floor: NDArray[np.float64]) -> NDArray[np.float64]:
+        f = neg_rastrigin(x)
+        return np.where(f > floor, f, -np.inf)
+
+    plain = particle_swarm(neg_rastrigin, *BOX, n_particles=50, max_iterations=40, seed=5)
+    fast = particle_swarm(neg_rastrigin, *BOX, n_particles=50, max_iterations=40, seed=5, screened=screened)
+    assert fast.iterations == plain.iterations and fast.best_score == plain.best_score
+    np.testing.assert_array_equal(fast.best_x, plain.best_x)
+    ruled_out = particle_swarm(neg_rastrigin, *BOX, n_particles=50, max_iterations=40, seed=5,
+                               screened=lambda x, floor: np.full(x.shape[0], -np.inf))
+    assert ruled_out.best_score == max(plain.history[0], ruled_out.history[0]) < plain.best_score

@@ -9,6 +9,8 @@ per pose and each set of planes sampled once, and every channel's sums are those
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -78,7 +80,17 @@ class GomChannels:
             self.points, self.c2, self.s2, self.magnitude, self.member, first.planes, second.planes,
             len(self.planes), first.mask, second.mask, self.scale1, self.cam, poses,
             focal_batch(focal_scale, poses.shape[0]), roll_turns(poses, self.R_gradients))  # fmt: skip
-        with np.errstate(divide="ignore", invalid="ignore"):
-            gom = np.where(den > 0, num / (2.0 * den), 0.0)
-        return [MetricBatch(np.ascontiguousarray(gom[:, k, ch]), np.ascontiguousarray(count[:, k, ch]))
+        return [MetricBatch.of_gom(np.ascontiguousarray(num[:, k, ch]), np.ascontiguousarray(den[:, k, ch]),
+                                   np.ascontiguousarray(count[:, k, ch]))
                 for k in range(len(self.planes)) for ch in range(self.n_channels)]
+
+    def subset(self, index: NDArray[np.int64]) -> GomChannels:
+        """These channels on the points ``index`` of their union only (same planes): every channel's sums over
+        its own points among them."""
+        part = copy.copy(self)
+        part.points = np.ascontiguousarray(self.points[index])
+        part.c2 = np.ascontiguousarray(self.c2[index])
+        part.s2 = np.ascontiguousarray(self.s2[index])
+        part.magnitude = np.ascontiguousarray(self.magnitude[index])
+        part.member = np.ascontiguousarray(self.member[index])
+        return part

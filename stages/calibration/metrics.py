@@ -34,10 +34,35 @@ class MetricBatch:
     Attributes:
         scores: (P,) metric value per pose (0 where no point projects).
         counts: (P,) lidar points that project inside the image and its valid mask.
+        sums: GOM only: (P, 2) its numerator and weight sums (score = numerator / (2 weight)), from which
+            the scores of two disjoint point sets combine (``plus``); None for other metrics.
     """
 
     scores: NDArray[np.float64]
     counts: NDArray[np.int64]
+    sums: NDArray[np.float64] | None = None
+
+    @classmethod
+    def of_gom(cls, num: NDArray[np.float64], den: NDArray[np.float64], counts: NDArray[np.int64]) -> MetricBatch:
+        """GOM's batch from its per-pose numerator, weight and projected-point count."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            gom = np.where(den > 0, num / (2.0 * den), 0.0)
+        return cls(np.asarray(gom), np.asarray(counts), np.stack([num, den], axis=1))
+
+    def rows(self, chosen: NDArray[np.bool_]) -> MetricBatch:
+        """This batch's poses where ``chosen`` (P,) holds."""
+        return MetricBatch(self.scores[chosen], self.counts[chosen], None if self.sums is None else self.sums[chosen])
+
+    def plus(self, other: MetricBatch) -> MetricBatch:
+        """The GOM batch of the same poses over this batch's points and ``other``'s (disjoint sets).
+
+        Raises:
+            ProcessingError: either batch carries no sums (not GOM).
+        """
+        if self.sums is None or other.sums is None:
+            raise ProcessingError("only GOM batches combine over point sets")
+        sums = self.sums + other.sums
+        return MetricBatch.of_gom(sums[:, 0], sums[:, 1], self.counts + other.counts)
 
 
 def camera_params(camera: CameraModel, stride: int = 1, row_stride: int | None = None) -> NDArray[np.float64]:
@@ -362,9 +387,7 @@ class GomScorer:
     def score(self, T_camera_lidar_batch: NDArray[np.floating],
               focal_scale: NDArray[np.floating] | None = None) -> MetricBatch:
         num, den, count = self._sums(T_camera_lidar_batch, focal_scale)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            gom = np.where(den > 0, num / (2.0 * den), 0.0)
-        return MetricBatch(np.asarray(gom), np.asarray(count))
+        return MetricBatch.of_gom(num, den, count)
 
     def alignment(self, T_camera_lidar_batch: NDArray[np.floating]) -> NDArray[np.float64]:
         """(P,) GOM's numerator above chance, ``sum mu cos 2(a - b)`` over the projected points (lidar times

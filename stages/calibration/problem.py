@@ -157,11 +157,13 @@ class ScoringView:
     together: list[GomChannels | None]
     channels: list[int]
     per_point: int = 1
+    share: float = 1.0  # of its frames' points it scores: a pose scored counts as this many evaluations
 
     def of_frames(self, chosen: Sequence[int]) -> ScoringView:
         """This view on the frames at positions ``chosen`` of its own."""
         return ScoringView([self.frames[k] for k in chosen], [self.scorers[k] for k in chosen],
-                           [self.together[k] for k in chosen], [self.channels[k] for k in chosen], self.per_point)
+                           [self.together[k] for k in chosen], [self.channels[k] for k in chosen], self.per_point,
+                           self.share)
 
     def strided(self, stride: int) -> ScoringView:
         """Every ``stride``-th point of each frame's GOM scorers (points are in image order, so a stride thins
@@ -171,6 +173,37 @@ class ScoringView:
         scorers = [[s.subset(np.arange(0, s.points.shape[0], stride)) if isinstance(s, GomScorer) else s
                     for s in frame] for frame in self.scorers]
         return ScoringView(self.frames, scorers, [None] * len(scorers), self.channels, self.per_point * stride)
+
+    def split(self, stride: int) -> tuple[ScoringView, ScoringView]:
+        """Every ``stride``-th point of each frame (points are in image order, so a stride thins a frame evenly)
+        and the other points: two views whose GOM sums add up to this view's (``MetricBatch.plus``). A frame
+        scored in one pass (``together``) keeps its scorer list, which that pass replaces.
+
+        Raises:
+            ProcessingError: a scorer is not GOM.
+        """
+        parts: tuple[list[list[Scorer]], list[list[Scorer]]] = ([], [])
+        passes: tuple[list[GomChannels | None], list[GomChannels | None]] = ([], [])
+        for frame, together in zip(self.scorers, self.together, strict=True):
+            if together is not None:
+                thinned, rest = _strides(together.points.shape[0], stride)
+                passes[0].append(together.subset(thinned))
+                passes[1].append(together.subset(rest))
+                parts[0].append(frame)
+                parts[1].append(frame)
+                continue
+            gom = [s for s in frame if isinstance(s, GomScorer)]
+            if len(gom) != len(frame):
+                raise ProcessingError("only GOM scorers split over point sets")
+            halves = [_strides(s.points.shape[0], stride) for s in gom]
+            parts[0].append([s.subset(h[0]) for s, h in zip(gom, halves, strict=True)])
+            parts[1].append([s.subset(h[1]) for s, h in zip(gom, halves, strict=True)])
+            passes[0].append(None)
+            passes[1].append(None)
+        return (ScoringView(self.frames, parts[0], passes[0], self.channels, self.per_point * stride,
+                            self.share / stride),
+                ScoringView(self.frames, parts[1], passes[1], self.channels, self.per_point,
+                            self.share * (1.0 - 1.0 / stride)))
 
     def against(self, planes_of: Callable[[GradientPlanes], GradientPlanes]) -> ScoringView:
         """The GOM feature channels of every frame against other gradient planes made once per frame from its
@@ -187,6 +220,13 @@ class ScoringView:
         return [scorer.score(T, focal) for scorer in self.scorers[k]]
 
 
+def _strides(n: int, stride: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Indices of every ``stride``-th of n points, and of the others."""
+    every = np.arange(n)
+    thinned = every % stride == 0
+    return every[thinned], every[~thinned]
+
+
 def gom_twins(scorers: list[Scorer], planes_of: Callable[[GradientPlanes], GradientPlanes]) -> list[Scorer]:
     """Twins of a frame's GOM scorers against other gradient planes made once from the frame's (``planes_of``:
     e.g. smoothed across the rings, or blurred for exploration) and shared by the channels."""
@@ -195,6 +235,42 @@ def gom_twins(scorers: list[Scorer], planes_of: Callable[[GradientPlanes], Gradi
         return []
     planes = planes_of(gom[0].image)
     return [s.against(planes) for s in gom]
+
+
+SCREEN_STRIDE = 4  # a screening pass scores every 4th point: most of a swarm's candidates are ruled out by it
+SCREEN_SIGMAS = 3.0  # its error's standard deviations a candidate's thinned score is given before it is ruled out
+
+
+class ScreenedObjective:
+    """A swarm's objective on ``view`` in two passes: the free parameters z (P, F) (the others at ``base``,
+    ``embed``) are scored on every ``SCREEN_STRIDE``-th point first, and on the other points only where the thinned
+    score plus ``SCREEN_SIGMAS`` standard deviations of its error reaches the row's ``floor`` (its particle's best
+    score). Those rows get their exact score (the two passes' sums added), the others -inf: they cannot beat their
+    floor but by a chance the thinned score's error puts at about 1 in 700. The error's deviation is measured
+    on the rows scored in full (none yet: every row is)."""
+
+    def __init__(self, problem: CalibrationProblem, view: ScoringView, base: NDArray[np.float64],
+                 free: NDArray[np.bool_]) -> None:
+        self.problem, self.view, self.base, self.free = problem, view, base, free
+        self.thinned, self.rest = view.split(SCREEN_STRIDE)
+        self.squared_error = 0.0
+        self.compared = 0
+
+    def __call__(self, z: NDArray[np.floating], floor: NDArray[np.floating] | None = None) -> NDArray[np.float64]:
+        x = embed(z, self.base, self.free)
+        first = self.problem._batches(x, self.thinned)
+        estimate = self.problem.scores_of(first, self.thinned)[0].mean(axis=1)
+        deviation = np.sqrt(self.squared_error / self.compared) if self.compared > 1 else np.inf
+        go = np.ones(x.shape[0], dtype=bool) if floor is None else estimate + SCREEN_SIGMAS * deviation >= floor
+        scores = np.full(x.shape[0], -np.inf)
+        if np.any(go):
+            second = self.problem._batches(x[go], self.rest)
+            merged = [[a.rows(go).plus(b) for a, b in zip(fa, fb, strict=True)]
+                      for fa, fb in zip(first, second, strict=True)]
+            scores[go] = self.problem.scores_of(merged, self.view)[0].mean(axis=1)
+            self.squared_error += float(np.sum((estimate[go] - scores[go]) ** 2))
+            self.compared += int(np.sum(go))
+        return scores
 
 
 class CalibrationProblem:
@@ -238,7 +314,7 @@ class CalibrationProblem:
             self.points_used.append(n)
             self.ring_smoothing_px.append(sigma_px)
         self._explore_views: dict[tuple[int, ...], ScoringView] = {}  # by the frames they score
-        self.evaluations = 0
+        self.evaluations = 0.0  # poses scored on every point of a view's frames
         self.on_iteration: Callable[[int, float], None] | None = None  # called after each swarm iteration
         init_counts = self._channel_counts(self.centre[None])
         self.min_counts = [np.maximum(config.min_points, np.floor(config.min_overlap_fraction * c)).astype(np.int64)
@@ -421,7 +497,7 @@ class CalibrationProblem:
         x = np.atleast_2d(np.asarray(x, dtype=np.float64))
         T_c0 = delta_transforms(x) @ self.T_init
         focal = x[:, 6] if x.shape[1] > 6 else None
-        self.evaluations += x.shape[0]
+        self.evaluations += x.shape[0] * view.share
         return [view.batches(k, self.T_camera_camera0[frame] @ T_c0, focal) for k, frame in enumerate(view.frames)]
 
     def _channel_counts(self, x: NDArray[np.floating]) -> list[NDArray[np.int64]]:
@@ -434,8 +510,12 @@ class CalibrationProblem:
         a scorer projecting fewer points than its minimum scores 0) and projected-point counts (largest
         over scorers), each (P, F), of parameters (P, D) on ``view`` (None: every point, ``full``)."""
         view = self.full if view is None else view
-        batches = self._batches(x, view)
-        n = np.atleast_2d(np.asarray(x)).shape[0]
+        return self.scores_of(self._batches(x, view), view)
+
+    def scores_of(self, batches: list[list[MetricBatch]],
+                  view: ScoringView) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+        """``frame_scores`` of the metric batches of ``view``'s frames and scorers (``_batches``)."""
+        n = batches[0][0].scores.shape[0]
         scores = np.zeros((n, len(batches)))
         counts = np.zeros((n, len(batches)), dtype=np.int64)
         for k, frame in enumerate(batches):
@@ -484,14 +564,17 @@ class CalibrationProblem:
         centre = self.centre
         lower, upper = self.lower[free], self.upper[free]
         search, explore = self.search_view(seed), self.explore_view(seed)
-        swarm = particle_swarm(partial(evaluate_embedded, self, base=centre, free=free, view=search), lower, upper,
+        screened = ScreenedObjective(self, search, centre, free) if cfg.metric == "gom" else None
+        swarm = particle_swarm(screened or partial(evaluate_embedded, self, base=centre, free=free, view=search),
+                               lower, upper,
                                n_particles=cfg.n_particles,
                                max_iterations=cfg.max_iterations, stall_iterations=cfg.stall_iterations,
                                min_iterations=cfg.min_iterations, score_tolerance=cfg.swarm_tolerance,
                                seed=seed, x_initial=centre[free],
                                explore_objective=(partial(evaluate_embedded, self, base=centre, free=free,
                                                           view=explore) if explore is not None else None),
-                               explore_iterations=cfg.explore_phase_iterations, on_iteration=self.on_iteration)
+                               explore_iterations=cfg.explore_phase_iterations, on_iteration=self.on_iteration,
+                               screened=screened)
         swarm = dataclasses.replace(swarm, best_x=embed(swarm.best_x, centre, free)[0])
         if not cfg.polish:
             return swarm, None

@@ -15,6 +15,8 @@ from numpy.typing import NDArray
 from fleetcal.pipeline.errors import ConfigError
 
 BatchObjective = Callable[[NDArray[np.float64]], NDArray[np.float64]]
+# scores of a batch given each row's floor: exact where a row may exceed its floor, -inf where it cannot
+FlooredObjective = Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]]
 
 
 @dataclass
@@ -50,7 +52,8 @@ def particle_swarm(objective: BatchObjective, lower: NDArray[np.floating], upper
                    inertia: float = 0.7298, cognitive: float = 1.49618, social: float = 1.49618,
                    x_initial: NDArray[np.floating] | None = None,
                    explore_objective: BatchObjective | None = None, explore_iterations: int = 0,
-                   on_iteration: Callable[[int, float], None] | None = None) -> SwarmResult:
+                   on_iteration: Callable[[int, float], None] | None = None,
+                   screened: FlooredObjective | None = None) -> SwarmResult:
     """Maximise ``objective`` in the box [lower, upper] with a global-best particle swarm.
 
     Particles start uniformly in the box (plus ``x_initial`` as particle 0 when given), velocities
@@ -63,6 +66,8 @@ def particle_swarm(objective: BatchObjective, lower: NDArray[np.floating], upper
     smoother version of ``objective`` with wider basins), then every particle's best position is
     re-scored with ``objective`` and the swarm flies on; the stopping rule starts counting then.
     ``on_iteration(iteration, best score)`` is called after every iteration (progress reports).
+    ``screened``, where given, scores the moved particles on ``objective`` against their own best scores
+    (``FlooredObjective``): a particle it gives -inf keeps its best, as it would for any lower score.
     Deterministic for a given ``seed``.
     """
     lo = np.asarray(lower, dtype=np.float64)
@@ -106,7 +111,8 @@ def particle_swarm(objective: BatchObjective, lower: NDArray[np.floating], upper
         v = inertia * v + cognitive * phi1 * (p_best - x) + social * phi2 * (g_x - x)
         v = np.clip(v, -v_max, v_max)
         x = np.clip(x + v, lo, hi)
-        f = np.asarray(current(x), dtype=np.float64)
+        f = np.asarray(screened(x, f_best) if screened is not None and current is objective else current(x),
+                       dtype=np.float64)
         evaluations += n_particles
         better = f > f_best
         p_best[better] = x[better]
