@@ -77,7 +77,8 @@ class CalibrationResult:
         runtime_s: wall time of building the objective (its lidar gradients) and the optimisation (all repeats), not
             the preparation of frames.
         iterations: swarm iterations + polish steps of the returned run.
-        evaluations: candidate poses scored over all repeats.
+        evaluations: candidate poses scored over all repeats, as poses scored on every point of the frames they
+            were scored on (a swarm's screening pass over a quarter of the points counts a quarter).
         verdict: ``ok`` (initial guess confirmed), ``recalibrated`` or ``suspect`` (GOM below
             ``gom_suspect_below``, a flat optimum, an estimate at the edge of the search box or on a
             frame's overlap limit, a single run in a ``SolverConfig.wide_box``, which nothing confirms; or
