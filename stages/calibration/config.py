@@ -62,6 +62,8 @@ class SolverConfig:
             off, ``suspect`` -> ``recalibrated``); one 16-beam start ended 1.9 deg off instead of 0.19
             (``suspect`` both ways), which moved the 90th percentile from 0.70 to 1.03 deg. A gain
             threshold of 1e-3 instead of 1e-4 saved as much time but left PJLab rig2 3.6 deg off from a start.
+            A moved particle is scored on every 4th point first and in full only where it may beat its own best
+            (``problem.ScreenedObjective``): the same swarm for about 60 % of the evaluations.
         swarm_points: each seeded run's swarm scores every frame while their points (``problem.points_scored``)
             add up to at most this many, else as many frames as fit in this many points (at least two), every
             s-th frame from an offset its seed turns (``problem.swarm_frame_subset``). Each run's polish scores
