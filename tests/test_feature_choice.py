@@ -62,6 +62,12 @@ def test_an_intensity_that_the_images_do_not_show_is_not_chosen(auto_frames: lis
         noisy.append(dataclasses.replace(frame, feature=feature))
     result = calibrate(noisy, perturb(true_T_camera_lidar(), 2.0, 0.1, seed=3), SMALL)
     assert result.feature_columns == (0, 1)
+    # its objective, freed while intensity was measured and built again, is the one a calibration told to use
+    # range+normals searches
+    told = calibrate(with_columns(noisy, (0, 1)), perturb(true_T_camera_lidar(), 2.0, 0.1, seed=3),
+                     dataclasses.replace(SMALL, feature_groups=()))
+    np.testing.assert_allclose(result.T_camera_lidar, told.T_camera_lidar, atol=1e-9)
+    assert result.score == told.score
 
 
 def test_one_frame_keeps_the_first_group(auto_frames: list[CalibrationFrame]) -> None:

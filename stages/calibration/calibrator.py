@@ -322,7 +322,9 @@ def _feature_problem(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4, 
     Each group's sharpness is measured on every frame at its own optimum, polished from a trusted start (the
     initial guess) on the first seeded run's swarm frames (``search_view``), so the choice costs two polishes,
     not a search; from a start the box's width says is not trusted (``SolverConfig.wide_box``), at the optimum
-    polished over every frame from the first seeded run's estimate on the first group."""
+    polished over every frame from the first seeded run's estimate on the first group. One group's objective is
+    held at a time (a log's lidar gradients and image twins for each): outside a wide box the first group's is
+    built again where it wins."""
     groups = usable_groups(frames, cfg.feature_groups) if cfg.metric == "gom" else []
     if not groups:
         return _prepared(frames, T_camera_lidar_init, cfg), None, None
@@ -330,17 +332,21 @@ def _feature_problem(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4, 
     if len(groups) == 1 or len(frames) < 2:  # one frame: no spread to test a difference against
         return prepared, groups[0], None
     first = _best_of(prepared[0], cfg.seed, hold, clock) if cfg.wide_box else None
-    chosen = (prepared, groups[0])
     sharpest = frame_sharpness(prepared[0], _polished(prepared[0], first, hold, cfg.seed))
+    chosen, kept = groups[0], (prepared if first is not None else None)
+    del prepared  # one objective at a time: the first group's is built again where it wins
     for group in groups[1:]:
         other = _prepared(with_columns(frames, group), T_camera_lidar_init, cfg)
         sharpness = frame_sharpness(other[0], _polished(other[0], first, hold, cfg.seed))
         if sharper(sharpness, sharpest):
-            chosen, sharpest = (other, group), sharpness
-    if chosen[1] != groups[0]:  # every run on the chosen objective: a first run searched to choose is searched again
+            chosen, sharpest, kept = group, sharpness, other
+        del other
+    if kept is None:
+        kept = _prepared(with_columns(frames, groups[0]), T_camera_lidar_init, cfg)
+    if chosen != groups[0]:  # every run on the chosen objective: a first run searched to choose is searched again
         clock.runs += int(first is not None)
-        return chosen[0], chosen[1], None
-    return chosen[0], chosen[1], first
+        return kept, chosen, None
+    return kept, chosen, first
 
 
 def _polished(problem: CalibrationProblem, run: _Run | None, hold: bool, seed: int) -> NDArray[np.float64]:
