@@ -4,13 +4,14 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 import pytest
 
 from fleetcal.pipeline.frames import LidarFrame
 from fleetcal.pipeline.transforms import rotation_error_deg, translation_error_m
-from fleetcal.stages.calibration import CalibrationFrame, SolverConfig, calibrate
+from fleetcal.stages.calibration import CalibrationFrame, SolverConfig, calibrate, calibrator
 from fleetcal.stages.calibration.feature_choice import sharper
 from fleetcal.stages.calibration.frame import AUTO_FEATURE_GROUPS, lidar_feature_stage, usable_groups, with_columns
 from fleetcal.stages.lidar_features import compute_lidar_feature
@@ -33,15 +34,31 @@ def auto_frames() -> list[CalibrationFrame]:
     return [auto_frame(seed) for seed in range(3)]
 
 
-def test_the_channel_the_images_follow_is_chosen_and_calibrates(auto_frames: list[CalibrationFrame]) -> None:
+def _count_objectives(monkeypatch: pytest.MonkeyPatch) -> list[tuple[int, ...]]:
+    """The feature columns of every objective the calibrations build from here on, in order."""
+    built: list[tuple[int, ...]] = []
+    prepared = calibrator._prepared
+
+    def counted(frames: list[CalibrationFrame], *args: Any) -> Any:
+        built.append(tuple(range(np.shape(frames[0].feature)[1])) if np.ndim(frames[0].feature) == 2 else (-1,))
+        return prepared(frames, *args)
+
+    monkeypatch.setattr(calibrator, "_prepared", counted)
+    return built
+
+
+def test_the_channel_the_images_follow_is_chosen_and_calibrates(auto_frames: list[CalibrationFrame],
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
     """The images show the surfaces' reflectivity, which the intensity column holds: its score falls
     further off alignment in every frame, so intensity is the objective and the estimate lands near the
     truth."""
     T_true = true_T_camera_lidar()
     runs_seen: set[int] = set()
+    built = _count_objectives(monkeypatch)
     result = calibrate(auto_frames, perturb(T_true, 2.0, 0.1, seed=3), SMALL,
                        progress=lambda report: runs_seen.add(report.run))
     assert result.feature_columns == (2,)
+    assert built == [(-1,), (0, 1), (-1,)]  # intensity, range+normals, and intensity again once it has won
     assert rotation_error_deg(result.T_camera_lidar, T_true) <= 0.3
     assert translation_error_m(result.T_camera_lidar, T_true) <= 0.05
     # chosen before the search: the seeded runs are those of a calibration told to use intensity, no more
@@ -52,7 +69,8 @@ def test_the_channel_the_images_follow_is_chosen_and_calibrates(auto_frames: lis
     assert runs_seen == told_runs
 
 
-def test_an_intensity_that_the_images_do_not_show_is_not_chosen(auto_frames: list[CalibrationFrame]) -> None:
+def test_an_intensity_that_the_images_do_not_show_is_not_chosen(auto_frames: list[CalibrationFrame],
+                                                               monkeypatch: pytest.MonkeyPatch) -> None:
     """The same scans with an intensity of noise: range and normals explain more of the images' edges."""
     rng = np.random.default_rng(0)
     noisy = []
@@ -60,10 +78,11 @@ def test_an_intensity_that_the_images_do_not_show_is_not_chosen(auto_frames: lis
         feature = np.asarray(frame.feature).copy()
         feature[:, 2] = rng.random(feature.shape[0])
         noisy.append(dataclasses.replace(frame, feature=feature))
+    built = _count_objectives(monkeypatch)
     result = calibrate(noisy, perturb(true_T_camera_lidar(), 2.0, 0.1, seed=3), SMALL)
     assert result.feature_columns == (0, 1)
-    # its objective, freed while intensity was measured and built again, is the one a calibration told to use
-    # range+normals searches
+    assert built == [(-1,), (0, 1)]  # the first group, measured last, is still held: nothing is built again
+    # and its objective is the one a calibration told to use range+normals searches
     told = calibrate(with_columns(noisy, (0, 1)), perturb(true_T_camera_lidar(), 2.0, 0.1, seed=3),
                      dataclasses.replace(SMALL, feature_groups=()))
     np.testing.assert_allclose(result.T_camera_lidar, told.T_camera_lidar, atol=1e-9)

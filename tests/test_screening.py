@@ -30,11 +30,11 @@ def test_split_views_add_up_to_the_whole_view(one_pass: bool) -> None:
     for stride in (2, 4):
         thinned, rest = problem.full.split(stride)
         merged = [[a.plus(b) for a, b in zip(fa, fb, strict=True)]
-                  for fa, fb in zip(problem._batches(x, thinned), problem._batches(x, rest), strict=True)]
+                  for fa, fb in zip(problem.metric_batches(x, thinned), problem.metric_batches(x, rest), strict=True)]
         scores, counts = problem.scores_of(merged, problem.full)
         np.testing.assert_array_equal(counts, whole_counts)
         np.testing.assert_allclose(scores, whole, rtol=0, atol=1e-12)
-        estimate = problem.scores_of(problem._batches(x, thinned), thinned)[0]
+        estimate = problem.scores_of(problem.metric_batches(x, thinned), thinned)[0]
         assert 0 < np.max(np.abs(estimate - whole)) < 0.1  # a thinned score is near, not equal
         assert (thinned.share, rest.share) == (1 / stride, 1 - 1 / stride)
 

@@ -312,41 +312,81 @@ def _prepared(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     return problem, clock_field
 
 
+_Prepared = tuple[CalibrationProblem, TimeShiftField | None]
+
+
 def _feature_problem(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4, cfg: SolverConfig, hold: bool,
-                     clock: _SearchClock) -> tuple[tuple[CalibrationProblem, TimeShiftField | None],
-                                                   tuple[int, ...] | None, _Run | None]:
+                     clock: _SearchClock) -> tuple[_Prepared, tuple[int, ...] | None, _Run | None]:
     """The objective of the first feature group (``SolverConfig.feature_groups``), or of another whose score
     the frames show falling significantly further off its optimum (``frame_sharpness``, ``sharper``); that
     group's columns (None: no groups) and the first seeded run where one was searched to choose.
 
     Each group's sharpness is measured on every frame at its own optimum, polished from a trusted start (the
     initial guess) on the first seeded run's swarm frames (``search_view``), so the choice costs two polishes,
-    not a search; from a start the box's width says is not trusted (``SolverConfig.wide_box``), at the optimum
-    polished over every frame from the first seeded run's estimate on the first group. One group's objective is
-    held at a time (a log's lidar gradients and image twins for each): outside a wide box the first group's is
-    built again where it wins."""
+    not a search (``_chosen_from_start``); from a start the box's width says is not trusted
+    (``SolverConfig.wide_box``), at the optimum polished over every frame from the first seeded run's estimate
+    on the first group (``_chosen_from_first_run``)."""
     groups = usable_groups(frames, cfg.feature_groups) if cfg.metric == "gom" else []
     if not groups:
         return _prepared(frames, T_camera_lidar_init, cfg), None, None
-    prepared = _prepared(with_columns(frames, groups[0]), T_camera_lidar_init, cfg)
     if len(groups) == 1 or len(frames) < 2:  # one frame: no spread to test a difference against
-        return prepared, groups[0], None
-    first = _best_of(prepared[0], cfg.seed, hold, clock) if cfg.wide_box else None
-    sharpest = frame_sharpness(prepared[0], _polished(prepared[0], first, hold, cfg.seed))
-    chosen, kept = groups[0], (prepared if first is not None else None)
-    del prepared  # one objective at a time: the first group's is built again where it wins
+        return _prepared(with_columns(frames, groups[0]), T_camera_lidar_init, cfg), groups[0], None
+    if cfg.wide_box:
+        return _chosen_from_first_run(frames, T_camera_lidar_init, cfg, hold, clock, groups)
+    prepared, chosen = _chosen_from_start(frames, T_camera_lidar_init, cfg, hold, groups)
+    return prepared, chosen, None
+
+
+def _chosen_from_start(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4, cfg: SolverConfig, hold: bool,
+                       groups: list[tuple[int, ...]]) -> tuple[_Prepared, tuple[int, ...]]:
+    """The chosen group's objective and columns, each group's sharpness measured at the optimum a polish from
+    the initial guess reaches. One group's objective is held at a time (a log's lidar gradients and image twins
+    for each): the groups are measured last to first, so the first, which most real logs keep, is still held at
+    the end and only another that wins is built again."""
+    sharpness: dict[tuple[int, ...], NDArray[np.float64]] = {}
+    held: _Prepared | None = None
+    for group in reversed(groups):
+        held = None  # freed before the next one is built
+        held = _prepared(with_columns(frames, group), T_camera_lidar_init, cfg)
+        sharpness[group] = frame_sharpness(held[0], _polished(held[0], None, hold, cfg.seed))
+    chosen = _sharpest(groups, sharpness)
+    if chosen != groups[0] or held is None:
+        held = None
+        held = _prepared(with_columns(frames, chosen), T_camera_lidar_init, cfg)
+    return held, chosen
+
+
+def _chosen_from_first_run(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4, cfg: SolverConfig, hold: bool,
+                           clock: _SearchClock, groups: list[tuple[int, ...]]) -> tuple[
+                               _Prepared, tuple[int, ...], _Run | None]:
+    """``_feature_problem`` in a wide box: the first seeded run searches the first group's objective, and each
+    group's sharpness is measured at the optimum a polish over every frame reaches from that run's estimate. The
+    first group's objective is held while the others are measured, as its run is returned where it wins."""
+    first_prepared = _prepared(with_columns(frames, groups[0]), T_camera_lidar_init, cfg)
+    first = _best_of(first_prepared[0], cfg.seed, hold, clock)
+    sharpness = {groups[0]: frame_sharpness(first_prepared[0], _polished(first_prepared[0], first, hold, cfg.seed))}
+    kept = first_prepared
     for group in groups[1:]:
         other = _prepared(with_columns(frames, group), T_camera_lidar_init, cfg)
-        sharpness = frame_sharpness(other[0], _polished(other[0], first, hold, cfg.seed))
-        if sharper(sharpness, sharpest):
-            chosen, sharpest, kept = group, sharpness, other
+        sharpness[group] = frame_sharpness(other[0], _polished(other[0], first, hold, cfg.seed))
+        if _sharpest(groups, sharpness) == group:
+            kept = other
         del other
-    if kept is None:
-        kept = _prepared(with_columns(frames, groups[0]), T_camera_lidar_init, cfg)
-    if chosen != groups[0]:  # every run on the chosen objective: a first run searched to choose is searched again
-        clock.runs += int(first is not None)
+    chosen = _sharpest(groups, sharpness)
+    if chosen != groups[0]:  # every run on the chosen objective: the first run is searched again
+        clock.runs += 1
         return kept, chosen, None
     return kept, chosen, first
+
+
+def _sharpest(groups: list[tuple[int, ...]], sharpness: dict[tuple[int, ...], NDArray[np.float64]]) -> tuple[int, ...]:
+    """The first of ``groups``, or a later one whose per-frame ``sharpness`` (of those measured) is significantly
+    sharper (``sharper``) than the first's and than every group chosen over it before."""
+    chosen = groups[0]
+    for group in groups[1:]:
+        if group in sharpness and sharper(sharpness[group], sharpness[chosen]):
+            chosen = group
+    return chosen
 
 
 def _polished(problem: CalibrationProblem, run: _Run | None, hold: bool, seed: int) -> NDArray[np.float64]:

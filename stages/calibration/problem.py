@@ -258,13 +258,13 @@ class ScreenedObjective:
 
     def __call__(self, z: NDArray[np.floating], floor: NDArray[np.floating] | None = None) -> NDArray[np.float64]:
         x = embed(z, self.base, self.free)
-        first = self.problem._batches(x, self.thinned)
+        first = self.problem.metric_batches(x, self.thinned)
         estimate = self.problem.scores_of(first, self.thinned)[0].mean(axis=1)
         deviation = np.sqrt(self.squared_error / self.compared) if self.compared > 1 else np.inf
         go = np.ones(x.shape[0], dtype=bool) if floor is None else estimate + SCREEN_SIGMAS * deviation >= floor
         scores = np.full(x.shape[0], -np.inf)
         if np.any(go):
-            second = self.problem._batches(x[go], self.rest)
+            second = self.problem.metric_batches(x[go], self.rest)
             merged = [[a.rows(go).plus(b) for a, b in zip(fa, fb, strict=True)]
                       for fa, fb in zip(first, second, strict=True)]
             scores[go] = self.problem.scores_of(merged, self.view)[0].mean(axis=1)
@@ -492,7 +492,7 @@ class CalibrationProblem:
             self._explore_views[key] = blurred.strided(self.config.explore_stride)
         return self._explore_views[key]
 
-    def _batches(self, x: NDArray[np.floating], view: ScoringView) -> list[list[MetricBatch]]:
+    def metric_batches(self, x: NDArray[np.floating], view: ScoringView) -> list[list[MetricBatch]]:
         """Metric batches per frame and scorer of ``view`` for parameters (P, D)."""
         x = np.atleast_2d(np.asarray(x, dtype=np.float64))
         T_c0 = delta_transforms(x) @ self.T_init
@@ -502,7 +502,7 @@ class CalibrationProblem:
 
     def _channel_counts(self, x: NDArray[np.floating]) -> list[NDArray[np.int64]]:
         """Projected points per frame and channel of the first candidate of x."""
-        return [np.array([b.counts[0] for b in frame], dtype=np.int64) for frame in self._batches(x, self.full)]
+        return [np.array([b.counts[0] for b in frame], dtype=np.int64) for frame in self.metric_batches(x, self.full)]
 
     def frame_scores(self, x: NDArray[np.floating],
                      view: ScoringView | None = None) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
@@ -510,11 +510,11 @@ class CalibrationProblem:
         a scorer projecting fewer points than its minimum scores 0) and projected-point counts (largest
         over scorers), each (P, F), of parameters (P, D) on ``view`` (None: every point, ``full``)."""
         view = self.full if view is None else view
-        return self.scores_of(self._batches(x, view), view)
+        return self.scores_of(self.metric_batches(x, view), view)
 
     def scores_of(self, batches: list[list[MetricBatch]],
                   view: ScoringView) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
-        """``frame_scores`` of the metric batches of ``view``'s frames and scorers (``_batches``)."""
+        """``frame_scores`` of the metric batches of ``view``'s frames and scorers (``metric_batches``)."""
         n = batches[0][0].scores.shape[0]
         scores = np.zeros((n, len(batches)))
         counts = np.zeros((n, len(batches)), dtype=np.int64)
@@ -532,7 +532,7 @@ class CalibrationProblem:
         each described as ``"frame 2 (/cam): 5908 points, limit 5907"``: there the limit, not the
         metric, held the optimum."""
         limited = []
-        for k, frame in enumerate(self._batches(np.asarray(x)[None], self.full)):
+        for k, frame in enumerate(self.metric_batches(np.asarray(x)[None], self.full)):
             for c, batch in enumerate(frame):
                 seen, limit = int(batch.counts[0]), int(self.min_counts[k][c])
                 if limit <= seen <= (1.0 + fraction) * limit:
