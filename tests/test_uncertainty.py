@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from fleetcal.stages.calibration.uncertainty import camera_delta, sampling_floor, scores_alike
+from fleetcal.stages.calibration.uncertainty import camera_delta, curvature_deviation_m, sampling_floor, scores_alike
 
 
 def test_a_difference_counts_only_beyond_two_standard_errors_over_the_bands() -> None:
@@ -25,6 +25,23 @@ def test_the_translation_floor_is_the_sampling_cell_at_the_typical_range() -> No
     np.testing.assert_allclose(floor, [0, 0, 0, across, across, across / 0.5])
     np.testing.assert_allclose(sampling_floor(float("nan"), 0.08, 10.0, 0.01)[5],
                                np.radians(0.08 / np.sqrt(12.0)) * 10.0 / 0.1)  # pixel cell; tangent floor 0.1
+
+
+def test_the_curvature_deviation_is_the_translation_that_costs_what_the_rotation_deviation_does() -> None:
+    """A score falling quadratically, -a r^2 - b t^2 (r degrees, t metres): the profile of a 0.15 m move against a
+    0.5 deg turn is b 0.15^2 / (a 0.5^2), and the translation whose loss equals that of a turn by the rotation's
+    deviation is that deviation times sqrt(a / b)."""
+    a, b = 0.04, np.array([2.0, 0.5, 0.02])  # score per deg^2; per m^2 along x, y, z
+    profile = b * 0.15**2 / (a * 0.5**2)
+    sigma_rotation = 0.12
+    expected = sigma_rotation * np.sqrt(a / b)
+    np.testing.assert_allclose(curvature_deviation_m(profile, sigma_rotation, 0.15, 0.5, box_m=10.0), expected,
+                               rtol=1e-12)
+    np.testing.assert_allclose(b * expected**2, a * sigma_rotation**2, rtol=1e-12)  # the same loss either way
+    # never wider than a uniform spread over the box; as wide where the move costs nothing; NaN not measured
+    capped = curvature_deviation_m(np.array([1e-6, 0.0, np.nan]), sigma_rotation, 0.15, 0.5, box_m=0.5)
+    np.testing.assert_allclose(capped[:2], 0.5 / np.sqrt(3.0))
+    assert np.isnan(capped[2])
 
 
 def test_camera_delta_is_the_turn_and_shift_in_the_camera_axes() -> None:

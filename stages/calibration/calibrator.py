@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 from fleetcal.pipeline.errors import ProcessingError
 from fleetcal.pipeline.transforms import rotation_error_deg, translation_error_m
 from fleetcal.stages.calibration.config import SolverConfig
-from fleetcal.stages.calibration.feature_choice import frame_sharpness, sharper
+from fleetcal.stages.calibration.feature_choice import CHOICE_POLISH_MIN_STEP, frame_sharpness, sharper
 from fleetcal.stages.calibration.frame import CalibrationFrame, Mat4, fold_rectification, usable_groups, with_columns
 from fleetcal.stages.calibration.observability import AXES, translation_profile, weak_axes
 from fleetcal.stages.calibration.problem import CalibrationProblem, embed, ring_slant_deg
@@ -51,8 +51,10 @@ from fleetcal.stages.calibration.timing import (
 )
 from fleetcal.stages.calibration.uncertainty import (
     BANDS_PER_FRAME,
+    AxisDeviations,
     axis_deviations,
     band_scores,
+    curvature_deviation_m,
     objective_floor,
     ring_alias_optima,
     sampling_floor,
@@ -393,7 +395,7 @@ def _polished(problem: CalibrationProblem, run: _Run | None, hold: bool, seed: i
     """The parameters a polish on ``problem`` reaches over every frame from ``run``'s (another feature's
     estimate), or where ``run`` is None from the initial guess (the box's centre) on the seed's swarm frames."""
     if run is None:
-        return problem.polish_on_view(problem.centre, hold, seed).best_x
+        return problem.polish_on_view(problem.centre, hold, seed, CHOICE_POLISH_MIN_STEP).best_x
     return problem.polish_everywhere(run.x, hold, float(problem.evaluate(run.x[None])[0])).best_x
 
 
@@ -526,6 +528,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
                                                  objective_floor()], axis=0),
                                  problem.free_parameters(hold), aliases, [run.x for run in replaced],
                                  confirmed=confirmed)
+    loose = _curvature_loosened(deviations, profile, cfg)
     uncertain = _uncertain_axes(deviations.rotation_deg, deviations.translation_m, cfg)
     reason = ""
     edge = box_edge(x_best, problem.lower, problem.upper, cfg.box_edge_fraction, problem.free_parameters(hold))
@@ -560,6 +563,8 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         unconfirmed = "" if confirmed else f", none of the {len(runs)} seeded runs confirms another"
         sources = ("" if replaced else f"; {deviations.alike_runs} other seeded run(s) and {deviations.alike_aliases} "
                    f"optima a few lidar rings away score as well{unconfirmed}")
+        if loose:
+            sources += f"; the score fixes the translation along {', '.join(loose)} loosely against the rotation"
         reason = (f"{why} uncertain beyond {cfg.agree_rotation_deg:g} deg / {100 * cfg.agree_translation_m:g} cm "
                   f"(2 sigma: {', '.join(uncertain)}{sources}): " + _MORE_EVIDENCE)
     verdict: Verdict
@@ -635,6 +640,19 @@ def _timing_fields(problem: CalibrationProblem, timing: TimingEstimate | None,
         out["readout_s"] = float("nan") if readout is None else readout
         out["readout_std_s"] = float("inf") if readout is None or timing is None else timing.readout_std_s
     return out
+
+
+def _curvature_loosened(deviations: AxisDeviations, profile: NDArray[np.float64], cfg: SolverConfig) -> list[str]:
+    """Raise each translation deviation to ``curvature_deviation_m`` of the translation profile and the median
+    rotation deviation, in place; returns the camera axes (``"y"``) where that made the two standard deviations
+    exceed ``agree_translation_m``."""
+    along = curvature_deviation_m(profile, float(np.median(deviations.rotation_deg)), cfg.profile_translation_m,
+                                  cfg.profile_rotation_deg, cfg.search_m)
+    raised = np.fmax(deviations.translation_m, along)
+    loose = [a for a, old, new in zip(AXES, deviations.translation_m, raised, strict=True)
+             if new > old and 2 * new > cfg.agree_translation_m]
+    deviations.translation_m = np.where(np.isnan(deviations.translation_m), np.nan, raised)
+    return loose
 
 
 def _uncertain_axes(std_rotation_deg: NDArray[np.float64], std_translation_m: NDArray[np.float64],

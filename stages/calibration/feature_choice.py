@@ -16,6 +16,12 @@ blurs on every rig measured (KITTI 12 px, a 1600 px 70 deg camera 22 px), so the
 misaligned ones, and within the accuracy the calibration must reach."""
 
 
+CHOICE_POLISH_MIN_STEP = 0.05
+"""The choice's polishes from the initial guess stop once their steps are this fraction of their first ones (a
+tenth of the box: 0.05 deg / 5 mm in the workflow's box): the sharpness compares the optimum's score with
+turns of ``SHARPNESS_TURN_DEG``, twenty times that step."""
+
+
 def frame_sharpness(problem: CalibrationProblem, x: NDArray[np.float64]) -> NDArray[np.float64]:
     """(F,) how far each frame's score falls from the objective's optimum ``x`` (D,) when the pose is turned
     +-``SHARPNESS_TURN_DEG`` about each camera axis (the mean of the six): how much of the image's edges the

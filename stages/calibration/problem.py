@@ -239,6 +239,9 @@ def gom_twins(scorers: list[Scorer], planes_of: Callable[[GradientPlanes], Gradi
 
 SCREEN_STRIDE = 4  # a screening pass scores every 4th point: most of a swarm's candidates are ruled out by it
 SCREEN_SIGMAS = 3.0  # its error's standard deviations a candidate's thinned score is given before it is ruled out
+POLISH_MIN_STEP = 0.005
+"""A polish stops once its steps are this fraction of its first ones (a tenth of the box): 0.005 deg / 0.5 mm in
+the workflow's box of +-5 deg / +-0.5 m."""
 
 
 class ScreenedObjective:
@@ -588,21 +591,25 @@ class CalibrationProblem:
         return self._polish(np.asarray(x, dtype=np.float64), self.free_parameters(hold_translation), self.full,
                             score)
 
-    def polish_on_view(self, x: NDArray[np.floating], hold_translation: bool, seed: int) -> SwarmResult:
-        """The polish (``pattern_search``) from parameters x (D,) on the seed's swarm frames (``search_view``);
-        its ``best_score`` is scored there."""
+    def polish_on_view(self, x: NDArray[np.floating], hold_translation: bool, seed: int,
+                       min_step_fraction: float = POLISH_MIN_STEP) -> SwarmResult:
+        """The polish (``pattern_search``) from parameters x (D,) on the seed's swarm frames (``search_view``),
+        down to ``min_step_fraction`` of its first steps; its ``best_score`` is scored there."""
         start = np.asarray(x, dtype=np.float64)
         view = self.search_view(seed)
         return self._polish(start, self.free_parameters(hold_translation), view,
-                            float(self.evaluate(start[None], view)[0]))
+                            float(self.evaluate(start[None], view)[0]), min_step_fraction)
 
-    def _polish(self, x: NDArray[np.float64], free: NDArray[np.bool_], view: ScoringView, score: float) -> SwarmResult:
+    def _polish(self, x: NDArray[np.float64], free: NDArray[np.bool_], view: ScoringView, score: float,
+                min_step_fraction: float = POLISH_MIN_STEP) -> SwarmResult:
         """Compass search over the free parameters from x (D,) on ``view`` (x scores ``score`` there), the others
-        at the box's centre; the result in all D parameters."""
+        at the box's centre, from steps of a tenth of the box down to ``min_step_fraction`` of them; the result in
+        all D parameters."""
         centre = self.centre
         lower, upper = self.lower[free], self.upper[free]
         result = pattern_search(partial(evaluate_embedded, self, base=centre, free=free, view=view), x[free],
-                                0.1 * (upper - lower), lower, upper, min_step_fraction=0.005, score_at_x0=score)
+                                0.1 * (upper - lower), lower, upper, min_step_fraction=min_step_fraction,
+                                score_at_x0=score)
         return dataclasses.replace(result, best_x=embed(result.best_x, centre, free)[0])
 
 

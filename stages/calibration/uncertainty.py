@@ -49,6 +49,14 @@ Its sources, added in quadrature:
   no deviation at all. A translation held by the settings (``hold``, a box 0 m wide) is an input, not an
   estimate, and keeps none (NaN).
 
+- the objective's curvature (translation only): where the score fixes the translation loosely against the
+  rotation (``observability.translation_profile`` below 1: a 15 cm move costs less than a 0.5 deg turn), a
+  translation as uncertain as the rotation is wider than any of the sources above says
+  (``curvature_deviation_m``). Each translation deviation is at least that: on a simulated 32-beam street
+  (profile 0.14 along the camera's vertical) 9.6 cm instead of the sampling cell's 3.9 cm, for an estimate
+  28 cm off. The larger of the two is kept, not their sum: both say how loosely the log fixes the same
+  translation.
+
 What they leave out is the translation's share of that bias beyond the sampling cell (KITTI's estimate sits
 3.8 cm off along the optical axis with every run agreeing) and a bias larger than the rigs measured. A
 sandwich estimate over the image bands (the score's finite-difference curvature against the spread of the
@@ -149,6 +157,22 @@ def sampling_floor(ring_spacing_deg: float, pixel_deg: float, range_m: float,
     across_m = float(np.radians(angle_deg) * np.nan_to_num(range_m))
     along_m = across_m / max(float(np.nan_to_num(off_axis)), 0.1)
     return np.array([0.0, 0.0, 0.0, across_m, across_m, along_m])
+
+
+def curvature_deviation_m(profile: NDArray[np.float64], rotation_deg: float, step_m: float, step_deg: float,
+                          box_m: float) -> NDArray[np.float64]:
+    """(3,) deviations (metres) along the camera's axes of a translation as uncertain as the rotation
+    (``rotation_deg``), at the exchange rate of the objective's own curvature: the translation profile
+    (``observability.translation_profile``) says that moving ``step_m`` along an axis costs ``profile`` times the
+    score a turn of ``step_deg`` does, so for a score that falls quadratically a move of
+    ``rotation_deg * step_m / (step_deg * sqrt(profile))`` costs what a turn of ``rotation_deg`` does. At most the
+    deviation of a uniform spread over the search box (``box_m / sqrt(3)``), which is also the deviation where the
+    profile is 0 or below (the move costs nothing); NaN where it is NaN (not measured)."""
+    p = np.asarray(profile, dtype=np.float64)
+    cap = box_m / np.sqrt(3.0)
+    positive = np.where(p > 0, p, 1.0)
+    sigma = np.where(p > 0, np.minimum(rotation_deg * step_m / (step_deg * np.sqrt(positive)), cap), cap)
+    return np.where(np.isfinite(p), sigma, np.nan)
 
 
 def objective_floor() -> NDArray[np.float64]:
