@@ -11,6 +11,7 @@ constructor raises ``TruncatedLogError`` carrying the same counts.
 
 from __future__ import annotations
 
+import functools
 import os
 import struct
 from collections.abc import Generator, Iterable, Iterator
@@ -20,7 +21,7 @@ from typing import IO, Any
 
 import zstandard
 from mcap.exceptions import McapError
-from mcap.reader import SeekingReader
+from mcap.reader import SeekingReader, Summary
 from mcap.records import Channel, Chunk, Footer, Message, Schema
 from mcap.stream_reader import MAGIC_SIZE, StreamReader, breakup_chunk
 
@@ -63,6 +64,26 @@ class TruncationInfo:
         )
 
 
+class _IndexedReader(SeekingReader):
+    """A ``SeekingReader`` given the file's summary, already read: reading messages does not parse it again
+    (a large log's chunk index takes tens of milliseconds, and a calibration reads hundreds of message sets)."""
+
+    def __init__(self, stream: IO[bytes], summary: Summary) -> None:
+        super().__init__(stream, validate_crcs=True)
+        self._known = summary
+
+    def get_summary(self) -> Summary:
+        return self._known
+
+
+@functools.lru_cache(maxsize=8)
+def _summary_of(path: str, size: int, mtime_ns: int) -> Summary | None:
+    """The summary section of the MCAP file at ``path`` (None: it has none), read once per process for a file
+    of that size and modification time (every frame source of a log opens it again)."""
+    with open(path, "rb") as stream:
+        return SeekingReader(stream).get_summary()
+
+
 @dataclass
 class _ScanResult:
     schemas: dict[int, Schema]
@@ -100,12 +121,10 @@ class McapLogReader(ContainerReader):
                     raise ReaderError(f"not an MCAP file (bad magic bytes): {self.path}")
                 stream.seek(0)
                 self.profile = self._read_header(stream)
-                self._summary_ok = False
+                self._summary: Summary | None = None  # set where the summary is usable
                 scan = self._read_summary(stream)
                 if scan is None:
                     scan = self._scan(stream)
-                else:
-                    self._summary_ok = True
         except OSError as err:
             raise ReaderError(f"cannot read {self.path}: {err.strerror or err}") from err
         except McapError as err:
@@ -139,13 +158,14 @@ class McapLogReader(ContainerReader):
         stream.seek(-MAGIC_SIZE, os.SEEK_END)
         if stream.read(MAGIC_SIZE) != MCAP_MAGIC:
             return None
-        stream.seek(0)
         try:
-            summary = SeekingReader(stream).get_summary()
+            stat = self.path.stat()
+            summary = _summary_of(str(self.path.resolve()), stat.st_size, stat.st_mtime_ns)
         except (McapError, struct.error, ValueError, UnicodeDecodeError):
             return None
         if summary is None or summary.statistics is None or not summary.chunk_indexes:
             return None
+        self._summary = summary
         stats = summary.statistics
         has_messages = stats.message_count > 0
         return _ScanResult(
@@ -236,8 +256,8 @@ class McapLogReader(ContainerReader):
         range are skipped by their header.
         """
         wanted = None if topics is None else sorted(set(topics))
-        if self._summary_ok:
-            yield from self._messages_indexed(wanted, start_ns, end_ns)
+        if self._summary is not None:
+            yield from self._messages_indexed(self._summary, wanted, start_ns, end_ns)
         else:
             yield from self._messages_streamed(wanted, start_ns, end_ns)
 
@@ -275,11 +295,11 @@ class McapLogReader(ContainerReader):
         )
 
     def _messages_indexed(
-        self, topics: list[str] | None, start_ns: int | None, end_ns: int | None
+        self, summary: Summary, topics: list[str] | None, start_ns: int | None, end_ns: int | None
     ) -> Iterator[RawMessage]:
         try:
             with self.path.open("rb") as stream:
-                reader = SeekingReader(stream, validate_crcs=True)
+                reader = _IndexedReader(stream, summary)
                 for _, channel, message in reader.iter_messages(
                     topics=topics, starting_at=start_ns, ending_before=end_ns, log_time_order=True
                 ):

@@ -484,6 +484,40 @@ def test_ring_smoothing_adds_a_term_smoothed_across_the_rings(frame: Calibration
     assert np.ptp(on.evaluate(x) - auto.evaluate(x)) > 1e-4
 
 
+def test_objectives_of_two_features_share_their_preparation_and_score_as_if_built_alone(
+        frame: CalibrationFrame) -> None:
+    """Objectives of the same frames with other lidar features share the scan's ring spacing, the sphere's
+    sampling aspect and the ring-smoothed image gradients (``SharedPreparation``) and score exactly what each
+    scores built alone; a feature that is not finite at a point is scored without it, and its frame's
+    sampling aspect is measured again on the points it keeps."""
+    from fleetcal.stages.calibration.problem import SharedPreparation
+
+    replace = dataclasses.replace
+    second = synthetic_frame(1)
+    frames = [frame, second]
+    cfg = SolverConfig(ring_smoothing="on", neighbours_by="sampling")
+    T_init = perturb(true_T_camera_lidar(), 2.0, 0.2, seed=4)
+    probe = SharedPreparation()
+    CalibrationProblem(frames[1:], T_init, cfg, probe)
+    scored = np.flatnonzero(np.unpackbits(np.frombuffer(probe.polar_scales[0][0], dtype=np.uint8)))
+    ranges = [compute_lidar_feature(np.asarray(f.points_xyz), "range") for f in frames]
+    ranges[1][scored[len(scored) // 2]] = np.nan
+    by_range = [replace(f, feature=r) for f, r in zip(frames, ranges, strict=True)]
+    x = np.random.default_rng(2).uniform(-2, 2, (16, 6)) * [1, 1, 1, 0.1, 0.1, 0.1]
+    shared = SharedPreparation()
+    first = CalibrationProblem(by_range, T_init, cfg, shared)
+    scales = dict(shared.polar_scales)
+    then = CalibrationProblem(frames, T_init, cfg, shared)
+    assert then.ring_spacing_rad is first.ring_spacing_rad and len(shared.twin_planes) == 2
+    assert then.scorers[0][1].image is first.scorers[0][1].image  # the smoothed twin's planes, made once
+    assert shared.polar_scales[0] == scales[0] and shared.polar_scales[1] != scales[1]  # 1 point fewer there
+    assert 0.0 < scales[0][1] < 1.0  # the 64 rings are sparser than the columns: a measured aspect
+    np.testing.assert_array_equal(first.evaluate(x), CalibrationProblem(by_range, T_init, cfg).evaluate(x))
+    np.testing.assert_array_equal(then.evaluate(x), CalibrationProblem(frames, T_init, cfg).evaluate(x))
+    with pytest.raises(ProcessingError, match="same frames"):
+        CalibrationProblem(frames[:1], T_init, cfg, shared)
+
+
 def test_a_lidar_with_sparse_rings_is_marked_so(frame: CalibrationFrame) -> None:
     """The result carries the scan's ring spacing; above ``sparse_rings_above_deg`` (1 deg) the rig is marked
     ``sparse_rings`` (its translation is rough): 16 beams over 22 deg (1.47 deg) are, the fixture's 64

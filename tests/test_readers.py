@@ -310,6 +310,32 @@ def test_mcap_topic_filter_reads_only_matching_chunks(
     assert opened and all(stamp < T0_NS + 1000 for stamp in opened)
 
 
+def test_mcap_summary_is_parsed_once_per_file_version(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Opening a log again and reading its messages reuses the summary already parsed; the same path written
+    again (another size and time) is parsed afresh and reads its new messages."""
+    import mcap.reader
+
+    parsed: list[int] = []
+    original = mcap.reader.SeekingReader.get_summary
+
+    def spy(self: mcap.reader.SeekingReader) -> Any:
+        parsed.append(1)
+        return original(self)
+
+    monkeypatch.setattr(mcap.reader.SeekingReader, "get_summary", spy)
+    path = write_mcap(tmp_path / "again.mcap", sample_entries("mcap-ros2", scans=5))
+    for _ in range(3):
+        with open_log(path) as reader:
+            assert sum(1 for _ in reader.messages(["/lidar/points"])) == 5
+    assert len(parsed) == 1
+    write_mcap(path, sample_entries("mcap-ros2", scans=3))
+    stat = path.stat()
+    os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns + 1_000_000_000))
+    with open_log(path) as reader:
+        assert sum(1 for _ in reader.messages(["/lidar/points"])) == 3
+    assert len(parsed) == 2
+
+
 def test_several_files_merge_in_log_time_order(tmp_path: Path) -> None:
     for kind in ("mcap-ros2", "ros1"):
         first = sample_entries(kind, T0_NS)

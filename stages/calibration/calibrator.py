@@ -39,7 +39,7 @@ from fleetcal.stages.calibration.config import SolverConfig
 from fleetcal.stages.calibration.feature_choice import CHOICE_POLISH_MIN_STEP, frame_sharpness, sharper
 from fleetcal.stages.calibration.frame import CalibrationFrame, Mat4, fold_rectification, usable_groups, with_columns
 from fleetcal.stages.calibration.observability import AXES, translation_profile, weak_axes
-from fleetcal.stages.calibration.problem import CalibrationProblem, embed, ring_slant_deg
+from fleetcal.stages.calibration.problem import CalibrationProblem, SharedPreparation, embed, ring_slant_deg
 from fleetcal.stages.calibration.pso import pattern_search
 from fleetcal.stages.calibration.sphere_gradients import cross_ring_neighbours, ring_spacing_rad, sphere_coordinates
 from fleetcal.stages.calibration.timing import (
@@ -303,11 +303,12 @@ def _seeded_runs(problem: CalibrationProblem, cfg: SolverConfig, hold_translatio
     return runs, best
 
 
-def _prepared(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
-              cfg: SolverConfig) -> tuple[CalibrationProblem, TimeShiftField | None]:
+def _prepared(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4, cfg: SolverConfig,
+              shared: SharedPreparation | None = None) -> tuple[CalibrationProblem, TimeShiftField | None]:
     """The objective of ``frames`` about the initial guess and its clock field, the points of cameras with a
-    known rolling shutter moved to their rows' times."""
-    problem = CalibrationProblem(frames, T_camera_lidar_init, cfg)
+    known rolling shutter moved to their rows' times (``shared``: what another feature's objective of the same
+    frames measured, ``SharedPreparation``)."""
+    problem = CalibrationProblem(frames, T_camera_lidar_init, cfg, shared)
     clock_field = _time_field(problem)
     if clock_field is not None and any(clock_field.readouts):
         clock_field.apply(TimeShift(), clock_field.row_fractions(problem.centre))
@@ -347,14 +348,15 @@ def _chosen_from_start(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4
     the end and only another that wins is built again."""
     sharpness: dict[tuple[int, ...], NDArray[np.float64]] = {}
     held: _Prepared | None = None
+    shared = SharedPreparation()
     for group in reversed(groups):
         held = None  # freed before the next one is built
-        held = _prepared(with_columns(frames, group), T_camera_lidar_init, cfg)
+        held = _prepared(with_columns(frames, group), T_camera_lidar_init, cfg, shared)
         sharpness[group] = frame_sharpness(held[0], _polished(held[0], None, hold, cfg.seed))
     chosen = _sharpest(groups, sharpness)
     if chosen != groups[0] or held is None:
         held = None
-        held = _prepared(with_columns(frames, chosen), T_camera_lidar_init, cfg)
+        held = _prepared(with_columns(frames, chosen), T_camera_lidar_init, cfg, shared)
     return held, chosen
 
 
@@ -364,12 +366,13 @@ def _chosen_from_first_run(frames: list[CalibrationFrame], T_camera_lidar_init: 
     """``_feature_problem`` in a wide box: the first seeded run searches the first group's objective, and each
     group's sharpness is measured at the optimum a polish over every frame reaches from that run's estimate. The
     first group's objective is held while the others are measured, as its run is returned where it wins."""
-    first_prepared = _prepared(with_columns(frames, groups[0]), T_camera_lidar_init, cfg)
+    shared = SharedPreparation()
+    first_prepared = _prepared(with_columns(frames, groups[0]), T_camera_lidar_init, cfg, shared)
     first = _best_of(first_prepared[0], cfg.seed, hold, clock)
     sharpness = {groups[0]: frame_sharpness(first_prepared[0], _polished(first_prepared[0], first, hold, cfg.seed))}
     kept = first_prepared
     for group in groups[1:]:
-        other = _prepared(with_columns(frames, group), T_camera_lidar_init, cfg)
+        other = _prepared(with_columns(frames, group), T_camera_lidar_init, cfg, shared)
         sharpness[group] = frame_sharpness(other[0], _polished(other[0], first, hold, cfg.seed))
         if _sharpest(groups, sharpness) == group:
             kept = other

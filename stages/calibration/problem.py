@@ -35,6 +35,7 @@ from fleetcal.stages.calibration.metrics import (
 )
 from fleetcal.stages.calibration.pso import SwarmResult, particle_swarm, pattern_search
 from fleetcal.stages.calibration.sphere_gradients import (
+    LidarGradients,
     camera_sphere_neighbours,
     compute_sphere_gradients,
     depth_discontinuities,
@@ -48,6 +49,50 @@ class Scorer(Protocol):
 
     def score(self, T_camera_lidar_batch: NDArray[np.floating],
               focal_scale: NDArray[np.floating] | None = None) -> MetricBatch: ...
+
+
+@dataclass
+class SharedPreparation:
+    """What the objectives of one log's frames share whatever lidar feature they score (the same frames, in the
+    same order, initial guess and settings): measured by the first objective built with it and reused by the
+    next (``CalibrationProblem``'s ``shared``), so that choosing a feature builds these once.
+
+    Attributes:
+        ring_spacing_rad: per frame, its scan's ring spacing (``sphere_gradients.ring_spacing_rad``), radians.
+        polar_scales: frame index -> which of its points were scored (``np.packbits`` of an (N,) bool) and the
+            polar-angle factor of their sphere neighbour search (``LidarGradients.polar_scale``): another
+            feature whose values are not finite at other points measures it again.
+        twin_planes: frame index -> its image gradients smoothed across the lidar's rings (``gom_twins``).
+    """
+
+    ring_spacing_rad: list[float] | None = None
+    polar_scales: dict[int, tuple[bytes, float]] = dataclasses.field(default_factory=dict)
+    twin_planes: dict[int, GradientPlanes] = dataclasses.field(default_factory=dict)
+
+    def ring_spacings(self, frames: list[CalibrationFrame]) -> list[float]:
+        """Per frame, its scan's ring spacing (NaN: untold); measured once per scan (a scan's cameras share
+        its points array) and once per log."""
+        if self.ring_spacing_rad is None:
+            by_scan: dict[int, float] = {}
+            for f in frames:
+                if id(f.points_xyz) not in by_scan:
+                    by_scan[id(f.points_xyz)] = ring_spacing_rad(f.points_xyz)
+            self.ring_spacing_rad = [by_scan[id(f.points_xyz)] for f in frames]
+        if len(self.ring_spacing_rad) != len(frames):
+            raise ProcessingError("objectives sharing their preparation must score the same frames")
+        return self.ring_spacing_rad
+
+    def polar_scale(self, k: int, scored: bytes) -> float | None:
+        """Frame ``k``'s polar-angle factor where it was measured on the same points (``scored``), else None."""
+        known = self.polar_scales.get(k)
+        return known[1] if known is not None and known[0] == scored else None
+
+    def twins_of(self, k: int, image: GradientPlanes,
+                 planes_of: Callable[[GradientPlanes], GradientPlanes]) -> GradientPlanes:
+        """Frame ``k``'s twin planes, made from its ``image`` gradients by ``planes_of`` the first time."""
+        if k not in self.twin_planes:
+            self.twin_planes[k] = planes_of(image)
+        return self.twin_planes[k]
 
 
 def delta_transforms(x: NDArray[np.floating]) -> NDArray[np.float64]:
@@ -280,7 +325,9 @@ class CalibrationProblem:
     """Prepared frames and the batched objective ``evaluate(x (P, D)) -> (P,)`` of a calibration."""
 
     def __init__(self, frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
-                 config: SolverConfig) -> None:
+                 config: SolverConfig, shared: SharedPreparation | None = None) -> None:
+        """``shared``: what an objective of the same frames with another lidar feature measured (filled here
+        where empty); None: measured for this objective alone."""
         config.validate()
         if not frames:
             raise ProcessingError("no paired lidar/camera frames to calibrate from")
@@ -300,16 +347,18 @@ class CalibrationProblem:
         self.T_camera_camera0 = [np.asarray(f.T_camera_camera0, dtype=np.float64) for f in frames]
         self.points_used: list[int] = []
         self.ring_smoothing_px: list[float] = []  # per frame, 0: none
-        self.ring_spacing_rad = [ring_spacing_rad(f.points_xyz) for f in frames]  # per frame, NaN: untold
+        shared = SharedPreparation() if shared is None else shared
+        self.ring_spacing_rad = shared.ring_spacings(frames)  # per frame, NaN: untold
         self.ring_slant_deg = [ring_slant_deg(f.camera, T_c_c0 @ T0)  # per frame at the initial guess, NaN: untold
                                for f, T_c_c0 in zip(frames, self.T_camera_camera0, strict=True)]
         self.selections: list[NDArray[np.bool_] | None] = []  # per frame: which points each GOM channel keeps
         self.full = ScoringView(list(range(len(frames))), [], [], [])
-        for f, T_c_c0, ring in zip(frames, self.T_camera_camera0, self.ring_spacing_rad, strict=True):
-            scorers, n, selections = self._prepare(f, T_c_c0 @ T0)
+        for k, (f, T_c_c0, ring) in enumerate(zip(frames, self.T_camera_camera0, self.ring_spacing_rad,
+                                                  strict=True)):
+            scorers, n, selections = self._prepare(f, T_c_c0 @ T0, k, shared)
             sigma_px, across = self._ring_smoothing(f, T_c_c0 @ T0, ring)
             smoothed = partial(GradientPlanes.blurred_along, direction_uv=across, sigma_px=sigma_px, thinned=True)
-            twins = gom_twins(scorers, smoothed) if sigma_px > 0 else []
+            twins = gom_twins(scorers, partial(shared.twins_of, k, planes_of=smoothed)) if sigma_px > 0 else []
             self.full.scorers.append(scorers + twins)
             self.full.channels.append(len(scorers))
             self.full.together.append(_together(scorers, selections, twins))
@@ -347,8 +396,9 @@ class CalibrationProblem:
             return none
         return sigma_px, across
 
-    def _prepare(self, f: CalibrationFrame, T_cam_lidar: Mat4) -> tuple[list[Scorer], int, NDArray[np.bool_] | None]:
-        """Scorers of one frame (one per feature channel; Levinson: one), its largest point count and, for
+    def _prepare(self, f: CalibrationFrame, T_cam_lidar: Mat4, k: int,
+                 shared: SharedPreparation) -> tuple[list[Scorer], int, NDArray[np.bool_] | None]:
+        """Scorers of frame ``k`` (one per feature channel; Levinson: one), its largest point count and, for
         GOM, which of the frame's points each channel keeps ((C, N) bool; other metrics: None)."""
         cfg = self.config
         pts = np.asarray(f.points_xyz, dtype=np.float64)
@@ -364,6 +414,8 @@ class CalibrationProblem:
         keep = _view_cull(apply(T_cam_lidar, pts), f.camera, np.radians(cfg.search_deg) * np.sqrt(3),
                           cfg.search_m * np.sqrt(3))
         pts, feat, raw = pts[keep], feat[keep], raw[keep]
+        good[good] = keep
+        scored = np.packbits(good).tobytes()  # which of the frame's points: the key of what is shared
         order = _image_order(apply(T_cam_lidar, pts), f.camera)
         pts, feat, raw = pts[order], feat[order], raw[order]
         if pts.shape[0] <= cfg.sphere_k:
@@ -386,27 +438,34 @@ class CalibrationProblem:
         neighbours: NDArray[np.int64] | None = None  # one sphere search per frame, shared by the channels
         image = GradientPlanes.of_stacked(f.gradients.gxy, f.camera, f.mask, f.gradients.stride)  # shared too
         for c in range(feat.shape[1]):
-            scorer, sel, neighbours = self._gom_scorer(f, raw, pts, feat[:, c], T_cam_lidar, image, neighbours)
+            scorer, sel, grads = self._gom_scorer(f, raw, pts, feat[:, c], T_cam_lidar, image, neighbours,
+                                                  shared.polar_scale(k, scored))
+            if neighbours is None:
+                neighbours = grads.neighbours
+                shared.polar_scales[k] = (scored, grads.polar_scale)
             scorers.append(scorer)
             selections.append(sel)
         return scorers, max(int(sel.sum()) for sel in selections), np.array(selections)
 
     def _gom_scorer(self, f: CalibrationFrame, raw: NDArray[np.float64], pts: NDArray[np.float64],
                     feat: NDArray[np.float64], T_cam_lidar: Mat4, image: GradientPlanes,
-                    neighbours: NDArray[np.int64] | None) -> tuple[GomScorer, NDArray[np.bool_], NDArray[np.int64]]:
+                    neighbours: NDArray[np.int64] | None,
+                    polar_scale: float | None) -> tuple[GomScorer, NDArray[np.bool_], LidarGradients]:
         """GOM scorer of one feature channel (lidar gradients, paper 3.3, and the point selection) against
-        the frame's ``image`` gradients, which of ``pts`` it keeps ((N,) bool) and the sphere neighbours it
-        used (``neighbours``: another channel's, or None)."""
+        the frame's ``image`` gradients, which of ``pts`` it keeps ((N,) bool) and the lidar gradients it
+        came from (sphere neighbours: ``neighbours``, another channel's, or searched with ``polar_scale``
+        where known)."""
         cfg = self.config
         if cfg.viewpoint == "lidar":
             grads = lidar_view_gradients(raw, pts, feat, T_cam_lidar,
                                          f.motion_rotation(),
                                          k=cfg.sphere_k, fit=cfg.fit, neighbours_by=cfg.neighbours_on("lidar"),
-                                         neighbours=neighbours)
+                                         neighbours=neighbours, polar_scale=polar_scale)
         else:
             grads = compute_sphere_gradients(pts, feat, T_cam_lidar, k=cfg.sphere_k,
                                              normalise=cfg.normalise_gradients, fit=cfg.fit,
-                                             neighbours_by=cfg.neighbours_on("camera"), neighbours=neighbours)
+                                             neighbours_by=cfg.neighbours_on("camera"), neighbours=neighbours,
+                                             polar_scale=polar_scale)
         magnitude = grads.magnitude  # the paper's weight (Algorithm 1: mean absolute difference to the neighbours)
         sel = magnitude > 0
         if cfg.keep_fraction < 1.0 and np.any(sel):
@@ -415,7 +474,7 @@ class CalibrationProblem:
         gx, gy = grads.gx[sel], grads.gy[sel]
         scorer = GomScorer(pts[sel], gx, gy, magnitude[sel], image, f.camera,
                            T_cam_lidar[:3, :3])
-        return scorer, sel, grads.neighbours
+        return scorer, sel, grads
 
     def T_camera_lidar_batch(self, x: NDArray[np.floating]) -> NDArray[np.float64]:
         """(P, 4, 4) extrinsics (reference camera <- lidar) of parameters x (P, D)."""

@@ -32,6 +32,8 @@ class LidarGradients:
         orientation: (N,) ``atan2(gy, gx)``, radians.
         sphere_uv: (N, 2) azimuth and polar angle of each point, radians.
         neighbours: (N, k) indices of the nearest neighbours on the sphere.
+        polar_scale: the factor on the polar angles of the neighbour search (``sampling_aspect`` with
+            ``neighbours_by = "sampling"``, 1 by angle); NaN where the neighbours were given, not searched.
     """
 
     gx: NDArray[np.float64]
@@ -40,6 +42,7 @@ class LidarGradients:
     orientation: NDArray[np.float64]
     sphere_uv: NDArray[np.float64]
     neighbours: NDArray[np.int64]
+    polar_scale: float = float("nan")
 
 
 def sphere_coordinates(points_cam: NDArray[np.floating]) -> NDArray[np.float64]:
@@ -138,9 +141,15 @@ def sphere_neighbours(sphere_uv: NDArray[np.float64], k: int = 8, polar_scale: f
     return np.ascontiguousarray(out)
 
 
+def polar_scale_by(sphere_uv: NDArray[np.float64], neighbours_by: str) -> float:
+    """The factor on the polar angles of a neighbour search ``by angle`` (1) or by ``sampling``
+    (``sampling_aspect`` of the points on this sphere)."""
+    return sampling_aspect(sphere_uv) if neighbours_by == "sampling" else 1.0
+
+
 def _neighbours_by(sphere_uv: NDArray[np.float64], k: int, neighbours_by: str) -> NDArray[np.int64]:
     """``sphere_neighbours`` by ``angle`` or by ``sampling`` (polar angle scaled by ``sampling_aspect``)."""
-    return sphere_neighbours(sphere_uv, k, sampling_aspect(sphere_uv) if neighbours_by == "sampling" else 1.0)
+    return sphere_neighbours(sphere_uv, k, polar_scale_by(sphere_uv, neighbours_by))
 
 
 def camera_sphere_neighbours(points_xyz: NDArray[np.floating], T_camera_lidar: NDArray[np.float64],
@@ -156,7 +165,8 @@ def compute_sphere_gradients(points_xyz: NDArray[np.floating], values: NDArray[n
                              T_camera_lidar: NDArray[np.float64], k: int = 8,
                              normalise: bool = False, fit: str = "paper",
                              neighbours_by: str = "angle",
-                             neighbours: NDArray[np.int64] | None = None) -> LidarGradients:
+                             neighbours: NDArray[np.int64] | None = None,
+                             polar_scale: float | None = None) -> LidarGradients:
     """Gradients of a per-point lidar feature as seen from the camera at ``T_camera_lidar``.
 
     Args:
@@ -170,6 +180,9 @@ def compute_sphere_gradients(points_xyz: NDArray[np.floating], values: NDArray[n
             ``sampling_aspect`` for the search, so sparse-ring lidars get neighbours across rings).
         neighbours: (N, k) precomputed ``camera_sphere_neighbours`` of the same points and pose (another
             feature channel's); None: searched here.
+        polar_scale: where the neighbours are searched, the factor on the polar angles already measured for
+            these points and pose (``LidarGradients.polar_scale`` of another feature's gradients); None: from
+            ``neighbours_by`` (``polar_scale_by``).
     """
     pts = np.asarray(points_xyz, dtype=np.float64)
     vals = np.ascontiguousarray(values, dtype=np.float64).ravel()
@@ -178,15 +191,17 @@ def compute_sphere_gradients(points_xyz: NDArray[np.floating], values: NDArray[n
     if not (np.all(np.isfinite(pts)) and np.all(np.isfinite(vals))):
         raise ProcessingError("lidar points or feature values contain NaN or infinity")
     sphere_uv = sphere_coordinates(apply(T_camera_lidar, pts))
+    scale = float("nan")
     if neighbours is None:
-        neighbours = _neighbours_by(sphere_uv, k, neighbours_by)
+        scale = polar_scale_by(sphere_uv, neighbours_by) if polar_scale is None else polar_scale
+        neighbours = sphere_neighbours(sphere_uv, k, scale)
     elif neighbours.shape != (pts.shape[0], k):
         raise ProcessingError(f"neighbours {neighbours.shape} do not match {pts.shape[0]} points x k={k}")
     if fit == "lsq":
         gx, gy, mag = sphere_gradient_lsq_kernel(sphere_uv, vals, neighbours)
     else:
         gx, gy, mag = sphere_gradient_kernel(sphere_uv, vals, neighbours, normalise)
-    return LidarGradients(gx, gy, mag, np.arctan2(gy, gx), sphere_uv, neighbours)
+    return LidarGradients(gx, gy, mag, np.arctan2(gy, gx), sphere_uv, neighbours, scale)
 
 
 def depth_discontinuities(points_xyz: NDArray[np.floating], neighbours: NDArray[np.int64],
@@ -223,7 +238,8 @@ def lidar_view_gradients(raw_xyz: NDArray[np.floating], points_xyz: NDArray[np.f
                          values: NDArray[np.floating], T_camera_lidar: NDArray[np.float64],
                          R_motion: NDArray[np.float64] | None = None, k: int = 8,
                          fit: str = "lsq", step_rad: float = 1e-3, neighbours_by: str = "angle",
-                         neighbours: NDArray[np.int64] | None = None) -> LidarGradients:
+                         neighbours: NDArray[np.int64] | None = None,
+                         polar_scale: float | None = None) -> LidarGradients:
     """Lidar gradients taken where the scan was captured and carried into the camera's view.
 
     On the camera-centred sphere (paper 3.3) a camera displaced from the lidar sees foreground and
@@ -245,6 +261,8 @@ def lidar_view_gradients(raw_xyz: NDArray[np.floating], points_xyz: NDArray[np.f
         R_motion: 3x3 rotation of the ego-motion from scan to camera stamp (None: none).
         k, fit, neighbours_by: neighbours and gradient fit (see ``compute_sphere_gradients``).
         neighbours: precomputed lidar-sphere neighbours (another channel's ``.neighbours``); None: searched.
+        polar_scale: the lidar sphere's polar-angle factor for that search, already measured
+            (``LidarGradients.polar_scale``); None: measured.
 
     Returns:
         gradients with ``gx, gy`` oriented in the camera's sphere, the paper's magnitude from the lidar's
@@ -257,7 +275,7 @@ def lidar_view_gradients(raw_xyz: NDArray[np.floating], points_xyz: NDArray[np.f
     T_turn = np.eye(4)
     T_turn[:3, :3] = R
     at_lidar = compute_sphere_gradients(raw, values, T_turn, k=k, fit=fit, neighbours_by=neighbours_by,
-                                        neighbours=neighbours)
+                                        neighbours=neighbours, polar_scale=polar_scale)
     norm = np.hypot(at_lidar.gx, at_lidar.gy)
     safe = np.where(norm > 0, norm, 1.0)
     edge_az, edge_polar = -at_lidar.gy / safe, at_lidar.gx / safe
@@ -278,5 +296,6 @@ def lidar_view_gradients(raw_xyz: NDArray[np.floating], points_xyz: NDArray[np.f
     d_safe = np.where(d_norm > 0, d_norm, 1.0)
     gx = np.where(norm > 0, d_polar / d_safe * norm, 0.0)
     gy = np.where(norm > 0, -d_az / d_safe * norm, 0.0)
-    return LidarGradients(gx, gy, at_lidar.magnitude, np.arctan2(gy, gx), uv, at_lidar.neighbours)
+    return LidarGradients(gx, gy, at_lidar.magnitude, np.arctan2(gy, gx), uv, at_lidar.neighbours,
+                          at_lidar.polar_scale)
 
