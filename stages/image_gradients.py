@@ -8,6 +8,7 @@ Pixel (row, column) = (v, u) of the image; ``gx`` is the derivative along u (col
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
@@ -19,10 +20,12 @@ from fleetcal.pipeline.frames import CameraFrame
 from fleetcal.stages import image_kernels
 
 __all__ = [
+    "QUANTA_PER_GREY_LEVEL",
     "CameraGradientResult",
     "ImageGradients",
     "camera_frame_gradients",
     "compute_image_gradients",
+    "quantised",
     "sampling_stride",
     "subsampled",
     "to_grey_u8",
@@ -32,31 +35,39 @@ __all__ = [
 
 @dataclass
 class ImageGradients:
-    """Gradients of one image: one (H, W, 2) float32 array, the rest views or computed on demand.
+    """Gradients of one image: one (H, W, 2) array, the rest views or computed on demand.
 
     Attributes:
         gxy: (H, W, 2) 3x3 Sobel derivative along columns (x, channel 0) and rows (y, channel 1), in
-            equalised 8-bit grey levels (Sobel weights unnormalised, so a step of 1 grey level gives 4).
+            equalised 8-bit grey levels (Sobel weights unnormalised, so a step of 1 grey level gives 4) times
+            ``scale``: float32 (scale 1), or int16 in ``QUANTA_PER_GREY_LEVEL`` steps (``quantised``).
             Interleaved as the GOM kernel reads it, so the objective shares it without a copy.
-    ``gx``, ``gy`` (views), ``magnitude`` (``hypot(gx, gy)``) and ``orientation`` (``atan2(gy, gx)``,
-    radians in (-pi, pi], 0 where the magnitude is 0) are (H, W) float32; the last two are computed
-    on each access, so a frame holds 8 bytes per pixel, not 16. All are 0 on the 1-pixel image border
+        stride: ``gxy[i, j]`` is the gradient at image pixel (u, v) = (j * stride, i * stride) (``subsampled``);
+            1: every pixel.
+        scale: units of ``gxy`` per grey level of gradient.
+    ``gx``, ``gy``, ``magnitude`` (``hypot(gx, gy)``) and ``orientation`` (``atan2(gy, gx)``, radians in
+    (-pi, pi], 0 where the magnitude is 0) are (H, W) float32 in grey levels: views of float32 ``gxy``, the
+    others computed on each access, so a frame holds ``gxy`` alone. All are 0 on the 1-pixel image border
     and outside the (eroded) valid mask.
-
-    ``stride``: ``gxy[i, j]`` is the gradient at image pixel (u, v) = (j * stride, i * stride) (``subsampled``);
-    1: every pixel.
     """
 
-    gxy: NDArray[np.float32]
+    gxy: NDArray[np.float32] | NDArray[np.int16]
     stride: int = 1
+    scale: float = 1.0
+
+    def _channel(self, c: int) -> NDArray[np.float32]:
+        g = self.gxy[:, :, c]
+        if g.dtype == np.float32 and self.scale == 1.0:
+            return g  # type: ignore[return-value]
+        return np.asarray(g, dtype=np.float32) * np.float32(1.0 / self.scale)
 
     @property
     def gx(self) -> NDArray[np.float32]:
-        return self.gxy[:, :, 0]
+        return self._channel(0)
 
     @property
     def gy(self) -> NDArray[np.float32]:
-        return self.gxy[:, :, 1]
+        return self._channel(1)
 
     @property
     def magnitude(self) -> NDArray[np.float32]:
@@ -157,7 +168,25 @@ def subsampled(gradients: ImageGradients, stride: int) -> ImageGradients:
         raise InputError(f"stride must be >= 1, got {stride}")
     if stride == 1:
         return gradients
-    return ImageGradients(np.ascontiguousarray(gradients.gxy[::stride, ::stride]), gradients.stride * stride)
+    kept = cast("NDArray[np.float32] | NDArray[np.int16]", np.ascontiguousarray(gradients.gxy[::stride, ::stride]))
+    return ImageGradients(kept, gradients.stride * stride, gradients.scale)
+
+
+QUANTA_PER_GREY_LEVEL = 32
+"""Steps of a ``quantised`` gradient per grey level: the largest power of two that holds the largest 3x3 Sobel
+response of an 8-bit image (4 x 255 = 1020 grey levels, 32,640 steps) in int16."""
+
+
+def quantised(gradients: ImageGradients) -> ImageGradients:
+    """``gradients`` held as int16 in steps of 1 / ``QUANTA_PER_GREY_LEVEL`` grey level: half the memory of
+    float32, each value within 1/64 grey level of the float's (the blurred image's own 8-bit rounding is 32
+    times coarser)."""
+    if gradients.gxy.dtype == np.int16:
+        return gradients
+    steps = np.rint(np.asarray(gradients.gxy, dtype=np.float32) * np.float32(QUANTA_PER_GREY_LEVEL / gradients.scale))
+    limit = np.iinfo(np.int16).max
+    return ImageGradients(np.clip(steps, -limit, limit).astype(np.int16), gradients.stride,
+                          float(QUANTA_PER_GREY_LEVEL))
 
 
 def undistort_image(

@@ -602,9 +602,9 @@ def test_rectified_stereo_image_calibrates_the_cameras_tf_frame() -> None:
         camera_params(camera)  # the kernels never see R: it must be folded into the pose first
 
 
-def test_frame_holds_three_bytes_a_pixel_and_the_objective_shares_its_gradients() -> None:
-    """A 1920x1200 calibration frame keeps its image as gradients at every second pixel (8 bytes a kept pixel,
-    2 a pixel: its 3.1 px blur allows the stride) and the 8-bit equalised grey (1 byte), and the objective
+def test_frame_holds_two_bytes_a_pixel_and_the_objective_shares_its_gradients() -> None:
+    """A 1920x1200 calibration frame keeps its image as int16 gradients at every second pixel (4 bytes a kept
+    pixel, 1 a pixel: its 3.1 px blur allows the stride) and the 8-bit equalised grey (1 byte), and the objective
     reads those gradients in place, not a copy per frame."""
     camera = CameraModel(1920, 1200, np.array([[1000.0, 0, 960], [0, 1000.0, 600], [0, 0, 1]]), np.zeros(5))
     rects = make_scene(0)
@@ -614,7 +614,7 @@ def test_frame_holds_three_bytes_a_pixel_and_the_objective_shares_its_gradients(
     frame = build_frame(lidar, CameraFrame(1, "/cam", "cam", image, "mono8", camera), "intensity")
     assert frame.intensity is not None
     held = frame.gradients.gxy.nbytes + frame.intensity.nbytes
-    assert frame.gradients.stride == 2 and held == 3 * 1920 * 1200
+    assert frame.gradients.stride == 2 and held == 2 * 1920 * 1200
     problem = CalibrationProblem([frame], true_T_camera_lidar(), SolverConfig(ring_smoothing="off"))
     planes = [s.image.planes for s in problem.scorers[0] if isinstance(s, GomScorer)]
     assert planes and all(np.shares_memory(p, frame.gradients.gxy) for p in planes)

@@ -207,7 +207,8 @@ def calibrate_cameras(reader: LogReader, base_topic: str, moving_topic: str, con
     pairs, stamps = collect_gradient_pairs(reader, base_topic, moving_topic, config, engine)
     c = config.calibration
     result: AffineResult = calibrate_affine_pairs(
-        [(base.gxy, moving.gx, moving.gy) for base, moving in pairs], search_px=AFFINE_SEARCH_PX,
+        [(np.asarray(base.gxy, dtype=np.float32), moving.gx, moving.gy) for base, moving in pairs],
+        search_px=AFFINE_SEARCH_PX,
         search_deg=c.search_deg, keep_fraction=AFFINE_KEEP_FRACTION, n_particles=c.particles,
         max_iterations=c.iterations,
     )  # fmt: skip

@@ -84,6 +84,13 @@ class GomChannels:
                                    np.ascontiguousarray(count[:, k, ch]))
                 for k in range(len(self.planes)) for ch in range(self.n_channels)]
 
+    def on_planes(self, replaced: dict[int, GradientPlanes]) -> GomChannels:
+        """These channels against other planes of the same size in place of some of theirs (``replaced``: by
+        the ``id`` of the planes they replace, e.g. the same values in float32)."""
+        other = copy.copy(self)
+        other.planes = [replaced.get(id(planes), planes) for planes in self.planes]
+        return other
+
     def subset(self, index: NDArray[np.int64]) -> GomChannels:
         """These channels on the points ``index`` of their union only (same planes): every channel's sums over
         its own points among them."""

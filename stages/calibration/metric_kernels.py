@@ -171,7 +171,7 @@ def _pose_pixel(R: np.ndarray, points: np.ndarray, i: int, cam: np.ndarray, fs: 
 @njit(inline="always", **NJIT_FLAGS)
 def sample_bicubic2(planes: np.ndarray, u: float, v: float) -> tuple[float, float]:
     """Keys bicubic sample of a 2-channel (H, W, 2) image at (u, v): unrolled interior fast path,
-    clamped edges otherwise (the values of ``sample_bicubic``; float32 planes: to float32 rounding)."""
+    clamped edges otherwise (the values of ``sample_bicubic``; float32 or int16 planes: to float32 rounding)."""
     h = planes.shape[0]
     w = planes.shape[1]
     fu = math.floor(u)
@@ -183,9 +183,9 @@ def sample_bicubic2(planes: np.ndarray, u: float, v: float) -> tuple[float, floa
     a = 0.0
     b = 0.0
     if iu >= 0 and iv >= 0 and iu + 3 < w and iv + 3 < h:
-        # each row's taps in the planes' own precision: float32 planes then need no conversion per tap
-        # (a GOM call 10 % faster); the rows are summed in float64
-        t = planes.dtype.type
+        # each row's taps in float32, the planes' precision (float32, or int16 steps): float32 planes then need
+        # no conversion per tap (a GOM call 10 % faster); the rows are summed in float64
+        t = np.float32
         f0, f1, f2, f3 = t(wu0), t(wu1), t(wu2), t(wu3)
         for j in range(4):
             wv = wv0 if j == 0 else (wv1 if j == 1 else (wv2 if j == 2 else wv3))

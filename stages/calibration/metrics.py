@@ -12,6 +12,7 @@ candidate extrinsics in one numba call (parallel over poses). Higher is better f
 from __future__ import annotations
 
 import copy
+import dataclasses
 from dataclasses import dataclass
 from typing import Literal
 
@@ -221,8 +222,10 @@ class GradientPlanes:
     """One image's gradients packed for the GOM kernel, built once per frame and shared by its scorers.
 
     Attributes:
-        planes: (H', W', 2) float32 image gradient along u and along v (e.g. Sobel) at every ``stride``-th
-            pixel: ``planes[i, j]`` is the image's pixel (u, v) = (j * stride, i * stride).
+        planes: (H', W', 2) float32 or int16 image gradient along u and along v (e.g. Sobel) at every
+            ``stride``-th pixel: ``planes[i, j]`` is the image's pixel (u, v) = (j * stride, i * stride). In any
+            unit: GOM is a ratio of sums each linear in the image gradient's magnitude, so only its directions
+            and relative magnitudes enter (int16: ``image_gradients.quantised`` steps, read as they are).
         mask: (H', W') uint8, 1 where the image is valid, at the same pixels; ``ALL_VALID`` (1, 1) for an
             image without a mask.
         stride: pixels of the image per kept pixel, along rows and columns.
@@ -246,16 +249,17 @@ class GradientPlanes:
         return cls.of_stacked(np.stack([igx, igy], axis=2), camera, mask)
 
     @classmethod
-    def of_stacked(cls, image_gxy: NDArray[np.floating], camera: CameraModel,
+    def of_stacked(cls, image_gxy: NDArray[np.floating] | NDArray[np.int16], camera: CameraModel,
                    mask: NDArray[np.generic] | None = None, stride: int = 1) -> GradientPlanes:
         """Pack (H', W', 2) gradients (along u, along v) of an image of ``camera`` kept at every ``stride``-th
-        pixel (``ImageGradients.stride``); ``mask`` is the whole image's (H, W). A C-contiguous float32 array
-        (``ImageGradients.gxy``) is shared, not copied."""
+        pixel (``ImageGradients.stride``); ``mask`` is the whole image's (H, W). A C-contiguous float32 or int16
+        array (``ImageGradients.gxy``) is shared, not copied; others become float32."""
         gxy = np.asarray(image_gxy)
         if gxy.ndim != 3 or gxy.shape[2] != 2:
             raise ProcessingError(f"stacked image gradients must be (H, W, 2), got {gxy.shape}")
         _check_kept(gxy.shape, camera, stride)
-        return cls(_planes(gxy), _kept_mask(mask, camera, stride), stride)
+        shared = gxy.dtype == np.int16 and gxy.flags.c_contiguous
+        return cls(gxy if shared else _planes(gxy), _kept_mask(mask, camera, stride), stride)
 
     @property
     def width_px(self) -> int:
@@ -266,6 +270,17 @@ class GradientPlanes:
     def strides(self) -> tuple[int, int]:
         """Pixels of the image per kept column and per kept row."""
         return self.stride, self.stride if self.row_stride is None else self.row_stride
+
+    def as_float32(self) -> GradientPlanes:
+        """These planes with their values in float32 (themselves where they are)."""
+        if self.planes.dtype == np.float32:
+            return self
+        return dataclasses.replace(self, planes=np.ascontiguousarray(self.planes, dtype=np.float32))
+
+    def _channel(self, c: int) -> NDArray[np.float32]:
+        """Channel ``c`` (0: along u, 1: along v) as float32 in the planes' unit, for filtering (a view of float32
+        planes)."""
+        return np.asarray(self.planes[:, :, c], dtype=np.float32)
 
     def _square_stride(self) -> int:
         """The stride of planes kept at one stride along rows and columns (the blurs below assume it)."""
@@ -278,7 +293,7 @@ class GradientPlanes:
         """The gradients smoothed by a Gaussian of ``sigma_px`` image pixels (equal to the gradients of the
         image blurred by it: both are linear filters); same mask and stride."""
         sigma = sigma_px / self._square_stride()
-        planes = np.stack([cv2.GaussianBlur(self.planes[:, :, c], (0, 0), sigma) for c in range(2)], axis=2)
+        planes = np.stack([cv2.GaussianBlur(self._channel(c), (0, 0), sigma) for c in range(2)], axis=2)
         return GradientPlanes(np.ascontiguousarray(planes), self.mask, self.stride)
 
     def blurred_along(self, direction_uv: NDArray[np.floating], sigma_px: float,
@@ -300,7 +315,7 @@ class GradientPlanes:
         across = np.abs(du * -d[1] + dv * d[0])
         kernel = np.exp(-0.5 * (along / sigma) ** 2) * np.maximum(0.0, 1.0 - across)  # line, 1 px wide
         kernel /= kernel.sum()
-        planes = np.stack([cv2.filter2D(self.planes[:, :, c], -1, kernel, borderType=cv2.BORDER_REFLECT)
+        planes = np.stack([cv2.filter2D(self._channel(c), -1, kernel, borderType=cv2.BORDER_REFLECT)
                            for c in range(2)], axis=2)
         if not thinned:
             return GradientPlanes(np.ascontiguousarray(planes), self.mask, stride)
