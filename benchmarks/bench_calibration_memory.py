@@ -8,10 +8,11 @@ frame at once (``--joint`` rigs: every camera's too), so this increase times fra
 needs on top of the interpreter. The swarm is cut short (50 particles, 10 iterations, 1 run): its memory
 does not grow with the frames, and the accuracy is not what is measured here.
 
-Measured (2 cores): 293 / 328 / 347 MB at 1 / 4 / 8 frames, 8-12 MB per extra frame: a 1920x1200 image's
-gradients are kept at every second pixel (its 3.1 px blur allows it, ``image_gradients.sampling_stride``), 4.6 MB,
-and its 8-bit grey only for ``--metric nmi``. With the grey held: 293 / 333 / 365 MB (10-13 MB a frame); with the
-gradients at every pixel as well: 326 / 393 / 482 MB (22 MB a frame).
+Measured (2 cores): 286 / 319 / 341 MB at 1 / 4 / 8 frames, 8-11 MB per extra frame, of which a 1920x1200
+image's gradients are 2.3 MB: int16 steps (``image_gradients.quantised``) kept at every second pixel (its 3.1 px
+blur allows it, ``image_gradients.sampling_stride``); the rest is the scan (65 k points) and the objective's
+per-point arrays. The 8-bit grey is held only for ``--metric nmi``. With float32 gradients: 293 / 328 / 347 MB;
+with the grey held as well: 293 / 333 / 365 MB; with float32 gradients at every pixel: 326 / 393 / 482 MB.
 
     .venv/bin/python benchmarks/bench_calibration_memory.py [--frames 1 4 8] [--dir /tmp]
 """
@@ -101,9 +102,9 @@ def main() -> int:
         per = f"{(peak_mb - base_mb) / (n - base_n):.1f}" if n > base_n else "-"
         print(f"{n:>8} {used:>5} {seconds:>8.1f} {peak_mb:>12.1f} {per:>19}")
     stride = sampling_stride(default_blur_sigma_px(WIDTH))
-    gradients_mb = 8 * (-(-WIDTH // stride)) * (-(-HEIGHT // stride)) / 1e6
-    print(f"(a frame's image part: {gradients_mb:.1f} MB of gradients at a stride of {stride} pixels, 8 bytes a kept "
-          f"pixel; with --metric nmi also {WIDTH * HEIGHT / 1e6:.1f} MB of 8-bit grey)")
+    gradients_mb = 4 * (-(-WIDTH // stride)) * (-(-HEIGHT // stride)) / 1e6
+    print(f"(a frame's image part: {gradients_mb:.1f} MB of int16 gradients at a stride of {stride} pixels, 4 bytes a "
+          f"kept pixel; with --metric nmi also {WIDTH * HEIGHT / 1e6:.1f} MB of 8-bit grey)")
     return 0
 
 
