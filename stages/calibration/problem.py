@@ -429,8 +429,6 @@ class CalibrationProblem:
         keep = _view_cull(apply(T_cam_lidar, pts), f.camera, np.radians(cfg.search_deg) * np.sqrt(3),
                           cfg.search_m * np.sqrt(3))
         pts, feat, raw = pts[keep], feat[keep], raw[keep]
-        good[good] = keep
-        scored = np.packbits(good).tobytes()  # which of the frame's points: the key of what is shared
         order = _image_order(apply(T_cam_lidar, pts), f.camera)
         pts, feat, raw = pts[order], feat[order], raw[order]
         if pts.shape[0] <= cfg.sphere_k:
@@ -448,6 +446,8 @@ class CalibrationProblem:
             stride = f.gradients.stride
             edges = levinson_edge_image(f.gradients.magnitude, cfg.levinson_blur_px / stride)
             return [LevinsonScorer(pts[sel], weight[sel], edges, f.camera, f.mask, stride)], int(sel.sum()), None
+        good[good] = keep
+        scored = np.packbits(good).tobytes()  # which of the frame's points: the key of what is shared
         scorers: list[Scorer] = []
         selections: list[NDArray[np.bool_]] = []
         neighbours: NDArray[np.int64] | None = None  # one sphere search per frame, shared by the channels
