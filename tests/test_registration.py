@@ -23,7 +23,9 @@ from fleetcal.stages.registration.covariance_kernels import (
     gicp_covariances_kernel,
     mcgicp_covariances_kernel,
     sym3_eigh,
+    voxel_block_covariances_kernel,
 )
+from fleetcal.stages.registration.covariances import voxel_block_covariances
 from fleetcal.stages.registration.gicp import conditioning
 from fleetcal.stages.registration.gicp_kernels import (
     ROBUST_CAUCHY,
@@ -32,6 +34,8 @@ from fleetcal.stages.registration.gicp_kernels import (
     linearize_kernel,
     residual_jacobian,
 )
+from fleetcal.stages.registration.kdtree import KdTree
+from fleetcal.stages.registration.voxel import KEY_BITS, voxel_keys
 
 # ---------------------------------------------------------------- synthetic scenes
 
@@ -249,6 +253,58 @@ def test_gicp_covariance_of_plane_has_epsilon_along_normal() -> None:
     normal = R[:, 2]
     np.testing.assert_allclose(np.einsum("i,nij,j->n", normal, cov, normal), 1e-3, atol=1e-9)
     np.testing.assert_allclose(np.einsum("i,nij,j->n", R[:, 0], cov, R[:, 0]), 1.0, atol=1e-9)
+
+
+def block_cov_reference(points: NDArray[np.float64], voxel: float, reach: int, min_points: int,
+                        eps: float) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Plane covariances from every point whose voxel lies within ``reach`` cells on each axis (NumPy, SVD)."""
+    cells = np.floor(points / voxel).astype(np.int64)
+    out, sparse = np.full((len(points), 3, 3), np.nan), np.zeros(len(points), dtype=bool)
+    for i, cell in enumerate(cells):
+        block = points[np.all(np.abs(cells - cell) <= reach, axis=1)]
+        sparse[i] = len(block) < min_points
+        if not sparse[i]:
+            U, _, _ = np.linalg.svd(np.cov(block.T, bias=True))
+            out[i] = U @ np.diag([1.0, 1.0, eps]) @ U.T
+    return out, sparse
+
+
+@pytest.mark.parametrize("reach", [1, 2])
+def test_voxel_block_covariances_match_numpy_reference(reach: int) -> None:
+    rng = np.random.default_rng(4)
+    voxel = 0.25
+    points, _, _ = voxel_downsample(room_scene(rng, n=6000), voxel)
+    keys = voxel_keys(points, voxel)
+    assert np.all(np.diff(keys) > 0)  # the downsampled grid comes in ascending key order
+    out = np.full((len(points), 3, 3), np.nan)
+    sparse = np.zeros(len(points), dtype=bool)
+    voxel_block_covariances_kernel(points, keys, KEY_BITS, reach, np.arange(len(points)), 1e-3, 8, out, sparse)
+    ref, ref_sparse = block_cov_reference(points, voxel, reach, 8, 1e-3)
+    np.testing.assert_array_equal(sparse, ref_sparse)
+    np.testing.assert_allclose(out[~sparse], ref[~sparse], atol=1e-9)
+    assert sparse.any() and not sparse.all()
+
+
+def test_voxel_block_covariances_follow_the_surface_like_the_nearest_neighbours() -> None:
+    """Room at 0.25 m voxels: the block planes' normals agree with the 20 nearest's away from the edges, a
+    sparse block (a lone line of voxels) takes the 20 nearest, and the input order does not matter."""
+    rng = np.random.default_rng(5)
+    voxel = 0.25
+    room, _, _ = voxel_downsample(room_scene(rng, n=40000), voxel)
+    far_line = np.c_[np.linspace(10.0, 20.0, 41), np.full(41, 10.0), np.full(41, 1.0)]  # one ring, 10 m away
+    points = np.vstack([room, far_line])
+    tree = KdTree(points)
+    block = voxel_block_covariances(points, voxel, 20, 1e-3, tree)
+    nearest = estimate_covariances(points, k=20, epsilon=1e-3)
+    normal_block = np.linalg.eigh(block)[1][:, :, 0]
+    normal_nearest = np.linalg.eigh(nearest)[1][:, :, 0]
+    angle_deg = np.degrees(np.arccos(np.clip(np.abs(np.sum(normal_block * normal_nearest, axis=1)), 0.0, 1.0)))
+    assert np.median(angle_deg[: len(room)]) < 2.0, np.median(angle_deg)
+    # the line: at most 5 of its voxels in a block, under k / 2
+    np.testing.assert_allclose(block[len(room):], nearest[len(room):], atol=1e-9)
+    shuffled = rng.permutation(len(points))
+    np.testing.assert_allclose(voxel_block_covariances(points[shuffled], voxel, 20, 1e-3, KdTree(points[shuffled])),
+                               block[shuffled], atol=1e-12)
 
 
 @pytest.mark.parametrize("n_desc", [1, 3, 4])

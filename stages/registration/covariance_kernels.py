@@ -143,6 +143,15 @@ def sym3_eigh(A: np.ndarray, vals: np.ndarray, vecs: np.ndarray) -> None:
             vecs[a, b] = v[a, b]
 
 
+@njit(inline="always", **NJIT_FLAGS)
+def _plane_model(local: np.ndarray, epsilon: float, vals: np.ndarray, vecs: np.ndarray, out: np.ndarray) -> None:
+    """out (3, 3) = U diag(1, 1, eps) U^T, U the eigenvectors of the local covariance (eq. 4-5)."""
+    sym3_eigh(local, vals, vecs)
+    for a in range(3):
+        for b in range(3):
+            out[a, b] = vecs[a, 2] * vecs[b, 2] + vecs[a, 1] * vecs[b, 1] + epsilon * vecs[a, 0] * vecs[b, 0]
+
+
 @njit(**NJIT_FLAGS)
 def gicp_covariances_kernel(
     points: np.ndarray, neighbors: np.ndarray, epsilon: float, out: np.ndarray
@@ -151,22 +160,83 @@ def gicp_covariances_kernel(
 
     Args:
         points: (N, 3) float64 positions.
-        neighbors: (N, k) int64 indices of each point's k nearest neighbours (itself included).
+        neighbors: (Q, k) int64 indices into ``points`` of the k nearest neighbours of each of Q points
+            (itself included; Q = N for every point).
         epsilon: variance along the normal (relative to 1 in the plane).
-        out: (N, 3, 3) float64, written.
+        out: (Q, 3, 3) float64, written.
     """
-    n = points.shape[0]
     local = np.empty((3, 3))
     vals = np.empty(3)
     vecs = np.empty((3, 3))
-    for i in range(n):
+    for i in range(neighbors.shape[0]):
         _local_covariance(points, neighbors[i], local)
-        sym3_eigh(local, vals, vecs)
-        for a in range(3):
-            for b in range(3):
-                out[i, a, b] = (
-                    vecs[a, 2] * vecs[b, 2] + vecs[a, 1] * vecs[b, 1] + epsilon * vecs[a, 0] * vecs[b, 0]
-                )
+        _plane_model(local, epsilon, vals, vecs, out[i])
+
+
+@njit(**NJIT_FLAGS)
+def voxel_block_covariances_kernel(points: np.ndarray, keys: np.ndarray, bits: int, reach: int, rows: np.ndarray,
+                                   epsilon: float, min_points: int, out: np.ndarray, sparse: np.ndarray) -> None:
+    """GICP plane covariances (eq. 4-5) from the points of each point's block of voxels, ``reach`` cells
+    either way along each axis (reach 1: 3 x 3 x 3 voxels).
+
+    The points are visited in ascending key order; the blocks' keys then ascend with them, so each of the
+    block's columns (x and y fixed, z ``2 reach + 1`` cells) is found by a cursor that only moves forward.
+
+    Args:
+        points: (N, 3) float64 voxel means, one per voxel, in ascending order of ``keys``.
+        keys: (N,) int64 ascending voxel keys of the points (``voxel.voxel_keys``: cells packed ``bits``
+            bits each, x highest, z lowest).
+        reach: the block's half-width in cells.
+        rows: (R,) ascending indices of the points to do.
+        epsilon: variance along the normal (relative to 1 in the plane).
+        min_points: a block holding fewer points is left to the caller.
+        out: (N, 3, 3) float64, written at ``rows`` where ``sparse`` is False.
+        sparse: (N,) bool, written at ``rows``: True where the block held fewer than ``min_points`` points.
+    """
+    n = points.shape[0]
+    width = 2 * reach + 1
+    columns = np.empty(width * width, dtype=np.int64)
+    for c in range(width * width):
+        columns[c] = (c // width - reach) * (np.int64(1) << (2 * bits)) + (c % width - reach) * (np.int64(1) << bits)
+    cursor = np.zeros(width * width, dtype=np.int64)
+    local = np.empty((3, 3))
+    vals = np.empty(3)
+    vecs = np.empty((3, 3))
+    for i in rows:
+        count = 0
+        sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0.0
+        for c in range(width * width):
+            lowest = keys[i] + columns[c] - reach
+            j = cursor[c]
+            while j < n and keys[j] < lowest:
+                j += 1
+            cursor[c] = j
+            while j < n and keys[j] <= lowest + 2 * reach:
+                x = points[j, 0] - points[i, 0]
+                y = points[j, 1] - points[i, 1]
+                z = points[j, 2] - points[i, 2]
+                count += 1
+                sx += x
+                sy += y
+                sz += z
+                sxx += x * x
+                sxy += x * y
+                sxz += x * z
+                syy += y * y
+                syz += y * z
+                szz += z * z
+                j += 1
+        sparse[i] = count < min_points
+        if sparse[i]:
+            continue
+        mx, my, mz = sx / count, sy / count, sz / count
+        local[0, 0] = sxx / count - mx * mx
+        local[0, 1] = local[1, 0] = sxy / count - mx * my
+        local[0, 2] = local[2, 0] = sxz / count - mx * mz
+        local[1, 1] = syy / count - my * my
+        local[1, 2] = local[2, 1] = syz / count - my * mz
+        local[2, 2] = szz / count - mz * mz
+        _plane_model(local, epsilon, vals, vecs, out[i])
 
 
 @njit(**NJIT_FLAGS)

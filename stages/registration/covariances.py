@@ -10,10 +10,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from fleetcal.pipeline.errors import ConfigError, InputError
-from fleetcal.stages.registration.covariance_kernels import gicp_covariances_kernel, mcgicp_covariances_kernel
+from fleetcal.stages.registration.covariance_kernels import (
+    gicp_covariances_kernel,
+    mcgicp_covariances_kernel,
+    voxel_block_covariances_kernel,
+)
 from fleetcal.stages.registration.kdtree import KdTree
+from fleetcal.stages.registration.voxel import KEY_BITS, voxel_keys
 
 MIN_PLANE_VARIANCE_M2 = 1e-10
+BLOCK_REACHES = (1, 2)
+"""Half-widths, in voxels, of the blocks a voxel's plane is fitted to, nearest first (3 x 3 x 3, then 5 x 5 x 5)."""
 
 
 def build_kdtree(points: NDArray[np.float64]) -> KdTree:
@@ -117,4 +124,47 @@ def estimate_covariances(
     mcgicp_covariances_kernel(
         pts, desc, nbrs.astype(np.int64, copy=False), precision, float(epsilon), MIN_PLANE_VARIANCE_M2, out
     )
+    return out
+
+
+def voxel_block_covariances(points_xyz: NDArray[np.float64], voxel_size_m: float, k: int, epsilon: float,
+                            tree: KdTree, workers: int = 1) -> NDArray[np.float64]:
+    """GICP plane covariances (eq. 4-5) of voxel means, each from the means in the smallest block of voxels around
+    it (``BLOCK_REACHES``) that holds at least half of ``k`` of them.
+
+    A voxel-downsampled scan holds one point per voxel, so a block's points are a point's neighbours within one
+    or two voxel edges, found by walking the sorted voxel keys instead of a k-nearest search. Where no block
+    holds k / 2 points (a lone ring far from the lidar, or the edge of the scan) the plane comes from the
+    point's ``k`` nearest (``tree``), as in ``estimate_covariances``.
+
+    Args:
+        points_xyz: (N, 3) finite voxel means of a ``voxel_size_m`` grid, metres.
+        voxel_size_m: the grid's voxel edge (> 0), metres.
+        k: the neighbours a plane is fitted to where the blocks are sparse (itself included); a block needs
+            k // 2 points.
+        epsilon: variance along the normal relative to the unit in-plane variance.
+        tree: kd-tree over ``points_xyz``.
+        workers: threads for the k-nearest search of the points whose blocks are sparse.
+
+    Returns:
+        (N, 3, 3) float64 symmetric positive definite covariances.
+    """
+    pts = np.ascontiguousarray(points_xyz, dtype=np.float64)
+    keys = voxel_keys(pts, voxel_size_m)
+    order = None if np.all(keys[1:] > keys[:-1]) else np.argsort(keys, kind="stable")  # downsampled: ascending
+    ordered = pts if order is None else np.ascontiguousarray(pts[order])
+    ordered_keys = keys if order is None else np.ascontiguousarray(keys[order])
+    out = np.empty((pts.shape[0], 3, 3))
+    sparse = np.ones(pts.shape[0], dtype=np.bool_)
+    for reach in BLOCK_REACHES:
+        voxel_block_covariances_kernel(ordered, ordered_keys, KEY_BITS, reach, np.flatnonzero(sparse), float(epsilon),
+                                       max(3, k // 2), out, sparse)
+    if order is not None:
+        out[order], sparse[order] = out.copy(), sparse.copy()
+    rows = np.flatnonzero(sparse)
+    if rows.size:
+        _, nearest = tree.knn(pts[rows], min(k, pts.shape[0]), workers=workers)
+        sparse_out = np.empty((rows.size, 3, 3))
+        gicp_covariances_kernel(pts, nearest, float(epsilon), sparse_out)
+        out[rows] = sparse_out
     return out

@@ -18,7 +18,12 @@ from fleetcal.pipeline.errors import ConfigError, InputError
 from fleetcal.pipeline.frames import LidarFrame
 from fleetcal.stages.registration.config import CHANNEL_MODES, RegistrationConfig
 from fleetcal.stages.registration.covariance_kernels import moved_rows_kernel
-from fleetcal.stages.registration.covariances import build_kdtree, estimate_covariances, knn_indices
+from fleetcal.stages.registration.covariances import (
+    build_kdtree,
+    estimate_covariances,
+    knn_indices,
+    voxel_block_covariances,
+)
 from fleetcal.stages.registration.kdtree import KdTree
 from fleetcal.stages.registration.voxel import voxel_downsample_capped
 
@@ -229,11 +234,7 @@ def prepare_pointset(
         cov = np.broadcast_to(np.eye(3) * POINT_TO_POINT_VARIANCE, (pts.shape[0], 3, 3)).copy()
     else:
         tree = build_kdtree(pts)  # the neighbour search's tree is the registration target's tree too
-        nbrs = knn_indices(pts, config.k_neighbors, tree=tree, workers=config.workers)
-        cov = estimate_covariances(
-            pts, config.k_neighbors, config.epsilon, desc if config.method == "mcgicp" else None, lam,
-            neighbors=nbrs, workers=config.workers,
-        )  # fmt: skip
+        cov = _model_covariances(pts, desc, lam, voxel_m, tree, config)
     prepared = PointSet(
         points_xyz=np.ascontiguousarray(pts),
         channels=np.ascontiguousarray(desc),
@@ -248,6 +249,18 @@ def prepare_pointset(
     )
     prepared._tree = tree
     return prepared
+
+
+def _model_covariances(pts: NDArray[np.float64], desc: NDArray[np.float64], lam: NDArray[np.float64], voxel_m: float,
+                       tree: KdTree, config: RegistrationConfig) -> NDArray[np.float64]:
+    """(M, 3, 3) model covariances of downsampled points ``pts`` (voxel edge ``voxel_m``, 0: not downsampled):
+    GICP planes from each voxel's block of voxels (``voxel_block_covariances``), MC-GICP's from the k nearest
+    with their descriptors ``desc`` and measurement covariance ``lam``."""
+    if config.method == "gicp" and voxel_m > 0:
+        return voxel_block_covariances(pts, voxel_m, config.k_neighbors, config.epsilon, tree, config.workers)
+    nbrs = knn_indices(pts, config.k_neighbors, tree=tree, workers=config.workers)
+    return estimate_covariances(pts, config.k_neighbors, config.epsilon, desc if config.method == "mcgicp" else None,
+                                lam, neighbors=nbrs, workers=config.workers)
 
 
 def transformed_pointset(scan: PointSet, T_new_scan: NDArray[np.float64]) -> PointSet:

@@ -24,9 +24,9 @@ from fleetcal.stages.registration.voxel_kernels import (
 
 G = TypeVar("G", bound=np.generic)
 
-_KEY_BITS = 21
-_KEY_OFFSET = 1 << (_KEY_BITS - 1)
-_KEY_MASK = (1 << _KEY_BITS) - 1
+KEY_BITS = 21
+_KEY_OFFSET = 1 << (KEY_BITS - 1)
+_KEY_MASK = (1 << KEY_BITS) - 1
 
 
 _KEY_CHUNK = 1 << 20
@@ -58,7 +58,7 @@ def voxel_keys(
         pts = pts.astype(np.float64)
     keys = np.empty(pts.shape[0], dtype=np.int64)
     mask = np.ones(0, dtype=np.bool_) if valid is None else np.ascontiguousarray(valid, dtype=np.bool_)
-    if not voxel_keys_kernel(pts, float(voxel_size_m), mask, _KEY_OFFSET, _KEY_BITS, keys):
+    if not voxel_keys_kernel(pts, float(voxel_size_m), mask, _KEY_OFFSET, KEY_BITS, keys):
         raise InputError(
             f"points span more than {_KEY_OFFSET} voxels of {voxel_size_m} m from the origin; use a larger voxel size"
         )
@@ -75,10 +75,10 @@ def coarsen_keys(keys: NDArray[np.int64], levels: int) -> NDArray[np.int64]:
         return keys
     for lo in range(0, keys.shape[0], _KEY_CHUNK):
         chunk = keys[lo : lo + _KEY_CHUNK]
-        x = ((chunk >> (2 * _KEY_BITS)) & _KEY_MASK) >> levels
-        y = ((chunk >> _KEY_BITS) & _KEY_MASK) >> levels
+        x = ((chunk >> (2 * KEY_BITS)) & _KEY_MASK) >> levels
+        y = ((chunk >> KEY_BITS) & _KEY_MASK) >> levels
         z = (chunk & _KEY_MASK) >> levels
-        chunk[:] = np.where(chunk >= 0, (x << (2 * _KEY_BITS)) | (y << _KEY_BITS) | z, chunk)
+        chunk[:] = np.where(chunk >= 0, (x << (2 * KEY_BITS)) | (y << KEY_BITS) | z, chunk)
     return keys
 
 
@@ -169,7 +169,7 @@ def voxel_downsample_capped(
     group = np.empty(n, dtype=np.int64)
     levels = 0
     while True:  # with a cap: coarser and coarser keys until the voxels fit
-        last_try = max_voxels is None or levels == _KEY_BITS - 1
+        last_try = max_voxels is None or levels == KEY_BITS - 1
         distinct, complete = group_kernel(keys, group, -1 if last_try else max_voxels)
         if complete:
             break
