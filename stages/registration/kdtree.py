@@ -9,6 +9,7 @@ release the GIL), cut into slices of the queries.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import os
 from collections.abc import Callable
@@ -23,7 +24,7 @@ from fleetcal.stages.registration.kdtree_kernels import build_kernel, knn_kernel
 
 T = TypeVar("T")
 
-MIN_POINTS_PER_THREAD = 4096
+MIN_POINTS_PER_THREAD = 2048
 """Queries per thread at least: below that a thread costs more than it saves."""
 LEAF_SIZE = 32
 """Points per leaf at most. KITTI HDL-64E scans at 0.25 m voxels (19k points; a 37-49k-point local map):
@@ -123,8 +124,17 @@ def split_range(n: int, threads: int) -> list[tuple[int, int]]:
 
 
 def in_threads(run: Callable[[int, int], T], slices: list[tuple[int, int]]) -> list[T]:
-    """``run(lo, hi)`` of every slice, on threads when there are several (the kernels release the GIL)."""
+    """``run(lo, hi)`` of every slice, the first on the calling thread and the others on a pool kept for the
+    process (the kernels release the GIL): a registration calls this once per iteration, a few milliseconds
+    apart, so starting threads each time would cost as much as the slices save."""
     if len(slices) == 1:
         return [run(*slices[0])]
-    with ThreadPoolExecutor(len(slices)) as pool:
-        return list(pool.map(lambda bounds: run(*bounds), slices))
+    others = [_pool().submit(run, *bounds) for bounds in slices[1:]]
+    first = run(*slices[0])
+    return [first, *(future.result() for future in others)]
+
+
+@functools.cache
+def _pool() -> ThreadPoolExecutor:
+    """The process's pool for ``in_threads`` (one thread per core)."""
+    return ThreadPoolExecutor(thread_count(-1), thread_name_prefix="fleetcal-slices")
