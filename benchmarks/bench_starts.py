@@ -20,6 +20,7 @@ where the results carry none. ``--markdown PATH`` writes the tables at the head 
 (docs/accuracy.md), keeping its ``## `` sections.
 
     .venv/bin/python benchmarks/bench_starts.py [--quick] [--cases kitti sim-16 ...] [--starts 5]
+        [--sim-frames 10]
         [--deg 2] [--m 0.12] [--jobs N] [--markdown docs/accuracy.md] [--jsonl runs.jsonl]
         [--solver KEY=VALUE ...]
 
@@ -77,6 +78,8 @@ SIM: dict[str, dict[str, Any]] = {
     "sim-wide-angle": {"beams": 16, "columns": 1800, "wide_angle": True},
     "sim-panorama": {"beams": 64, "columns": 1024, "panorama": True},
 }
+SIM_FRAMES = 10
+"""Pairs in each simulated log of the table of record (``--sim-frames``; the calibration uses up to 40)."""
 WITHIN_DEG, WITHIN_M = 0.3, 0.10
 WRONG_DEG, WRONG_M = 0.5, 0.15
 
@@ -128,10 +131,11 @@ def load_real(name: str, quick: bool) -> Case | None:
     return Case(problem.frames, problem.T_true, problem.T_init, _quick(config) if quick else config)
 
 
-def load_sim(name: str, out: Path, quick: bool) -> Case:
+def load_sim(name: str, out: Path, quick: bool, frames: int = SIM_FRAMES) -> Case:
+    """The simulated rig ``name`` (``SIM``), a street log of ``frames`` pairs (quick: 2) written into ``out``."""
     from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log
 
-    frames = 2 if quick else 10
+    frames = 2 if quick else frames
     size = {"width": 1024, "height": 256} if SIM[name].get("panorama") else (
         {"width": 640, "height": 360} if quick else {"width": 1280, "height": 720})
     log = out / f"{name}.mcap"
@@ -190,10 +194,11 @@ def solver_overrides(pairs: list[str]) -> dict[str, Any]:
     return out
 
 
-def load_case(name: str, out: Path, quick: bool, overrides: dict[str, Any]) -> Case | None:
-    """The case ``name`` (a real log, or a rig simulated into ``out``) with ``overrides`` applied to its
-    solver settings."""
-    case = load_real(name, quick) if name in REAL else load_sim(name, out, quick)
+def load_case(name: str, out: Path, quick: bool, overrides: dict[str, Any],
+              sim_frames: int = SIM_FRAMES) -> Case | None:
+    """The case ``name`` (a real log, or a rig simulated into ``out`` with ``sim_frames`` pairs) with
+    ``overrides`` applied to its solver settings."""
+    case = load_real(name, quick) if name in REAL else load_sim(name, out, quick, sim_frames)
     return case if case is None or not overrides else replace(case, config=replace(case.config, **overrides))
 
 
@@ -254,7 +259,7 @@ def _parallel_job(name: str, index: int, args: argparse.Namespace, tmp: str) -> 
     if name not in _CASES:
         folder = Path(tmp) / str(os.getpid())
         folder.mkdir(exist_ok=True)
-        _CASES[name] = load_case(name, folder, args.quick, args.overrides)
+        _CASES[name] = load_case(name, folder, args.quick, args.overrides, args.sim_frames)
     case = _CASES[name]
     if case is None:
         return name, index, None
@@ -313,7 +318,8 @@ def markdown(lines: list[list[str]], args: argparse.Namespace, wall_s: float) ->
         "",
         f"`benchmarks/bench_starts.py{' --quick' if args.quick else ''}`: each case from the log's own tf and "
         f"{args.starts} start(s) {args.deg:g} deg / {100 * args.m:g} cm off the truth on random axes (seeds "
-        f"1001..{1000 + args.starts}); {mode}. Ran in {wall_s / 60:.0f} min on {platform.machine()} with "
+        f"1001..{1000 + args.starts}); {mode}; simulated logs of {2 if args.quick else args.sim_frames} pairs. "
+        f"Ran in {wall_s / 60:.0f} min on {platform.machine()} with "
         f"{os.cpu_count()} cores, {args.jobs} calibration(s) at once.",
         "",
         f"Within: rotation <= {WITHIN_DEG} deg and translation <= {100 * WITHIN_M:.0f} cm. Confidently wrong: "
@@ -348,6 +354,8 @@ def main() -> None:
     parser.add_argument("--deg", type=float, default=2.0)
     parser.add_argument("--m", type=float, default=0.12)
     parser.add_argument("--quick", action="store_true", help="cut-down run for a few minutes on 2 cores")
+    parser.add_argument("--sim-frames", type=int, default=SIM_FRAMES,
+                        help=f"pairs in each simulated log (default {SIM_FRAMES}; the calibration uses up to 40)")
     parser.add_argument("--markdown", type=Path, default=None, help="write the table to this markdown file")
     parser.add_argument("--jsonl", type=Path, default=None,
                         help="also write every calibration (case, start, per-axis errors and deviations, verdict) "
@@ -369,7 +377,7 @@ def main() -> None:
             rows = run_parallel(args, tmp)
         else:
             for name in args.cases:
-                case = load_case(name, Path(tmp), args.quick, args.overrides)
+                case = load_case(name, Path(tmp), args.quick, args.overrides, args.sim_frames)
                 if case is not None:
                     rows[name] = run_case(name, case, args.starts, args.deg, args.m)
     if args.jsonl is not None:
