@@ -62,7 +62,12 @@ from fleetcal.stages.calibration.uncertainty import (
 )
 
 Verdict = Literal["ok", "recalibrated", "suspect"]
-_MORE_EVIDENCE = "use more frames (--frames) or a log with more structure near the camera"  # what a user can do
+
+
+def _more_evidence(frames_used: int) -> str:
+    """What a user can do about an uncertain estimate (``frames_used``: the image-scan pairs it came from)."""
+    return (f"use more frames (--frames; this used {frames_used} image-scan pairs) or a log with more "
+            "structure near the camera")
 
 
 @dataclass
@@ -541,7 +546,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
                   "anywhere in the search box; check that the topics see the same scene, the camera's intrinsics "
                   "and the initial guess")
     elif flat:
-        reason = ("flat optimum: turning the estimate 1 deg barely changes the score; " + _MORE_EVIDENCE)
+        reason = ("flat optimum: turning the estimate 1 deg barely changes the score; " + _more_evidence(len(frames)))
     elif cfg.metric == "gom" and slanted_sparse_rings(ring_deg, slant_deg, cfg):  # measured on GOM only
         reason = (f"the lidar's rings lie {ring_deg:.2f} deg apart and cross the image slanted {slant_deg:.0f} deg "
                   f"(sphere neighbours by angle{', auto' if auto_angle else ''}): rings this sparse and slanted leave "
@@ -569,7 +574,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         if loose:
             sources += f"; the score fixes the translation along {', '.join(loose)} loosely against the rotation"
         reason = (f"{why} uncertain beyond {cfg.agree_rotation_deg:g} deg / {100 * cfg.agree_translation_m:g} cm "
-                  f"(2 sigma: {', '.join(uncertain)}{sources}): " + _MORE_EVIDENCE)
+                  f"(2 sigma: {', '.join(uncertain)}{sources}): " + _more_evidence(len(frames)))
     verdict: Verdict
     if reason:
         verdict = "suspect"
