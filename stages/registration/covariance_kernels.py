@@ -199,44 +199,26 @@ def voxel_block_covariances_kernel(points: np.ndarray, keys: np.ndarray, bits: i
     for c in range(width * width):
         columns[c] = (c // width - reach) * (np.int64(1) << (2 * bits)) + (c % width - reach) * (np.int64(1) << bits)
     cursor = np.zeros(width * width, dtype=np.int64)
+    block = np.empty(width * width * width, dtype=np.int64)  # one point a voxel at most
     local = np.empty((3, 3))
     vals = np.empty(3)
     vecs = np.empty((3, 3))
     for i in rows:
         count = 0
-        sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0.0
         for c in range(width * width):
             lowest = keys[i] + columns[c] - reach
             j = cursor[c]
             while j < n and keys[j] < lowest:
                 j += 1
             cursor[c] = j
-            while j < n and keys[j] <= lowest + 2 * reach:
-                x = points[j, 0] - points[i, 0]
-                y = points[j, 1] - points[i, 1]
-                z = points[j, 2] - points[i, 2]
+            while j < n and keys[j] <= lowest + 2 * reach and count < block.shape[0]:
+                block[count] = j
                 count += 1
-                sx += x
-                sy += y
-                sz += z
-                sxx += x * x
-                sxy += x * y
-                sxz += x * z
-                syy += y * y
-                syz += y * z
-                szz += z * z
                 j += 1
         sparse[i] = count < min_points
-        if sparse[i]:
-            continue
-        mx, my, mz = sx / count, sy / count, sz / count
-        local[0, 0] = sxx / count - mx * mx
-        local[0, 1] = local[1, 0] = sxy / count - mx * my
-        local[0, 2] = local[2, 0] = sxz / count - mx * mz
-        local[1, 1] = syy / count - my * my
-        local[1, 2] = local[2, 1] = syz / count - my * mz
-        local[2, 2] = szz / count - mz * mz
-        _plane_model(local, epsilon, vals, vecs, out[i])
+        if not sparse[i]:
+            _local_covariance(points, block[:count], local)
+            _plane_model(local, epsilon, vals, vecs, out[i])
 
 
 @njit(**NJIT_FLAGS)
