@@ -239,8 +239,10 @@ def bench_small_gicp(pair: Pair, args: argparse.Namespace) -> list[Row]:
         args.repeats,
     )
     T = result.T_target_source
+    # small_gicp's ``iterations`` is the index of its last linearisation (0 after one): counted here as
+    # linearisations, like fleetcal's.
     return [
-        _row(pair, "small_gicp GICP", prep_ms, align_ms, T, result.iterations)
+        _row(pair, "small_gicp GICP", prep_ms, align_ms, T, result.iterations + 1)
     ]
 
 
