@@ -258,6 +258,18 @@ def test_box_edge_names_the_parameters_at_the_edge() -> None:
     assert box_edge(x, lower, -lower, 0.02, rotation_only) == ["ry = +4.950 deg (box -5.000..+5.000)"]
 
 
+def test_box_edge_reaches_as_far_as_twice_the_estimates_deviation() -> None:
+    """An estimate 1.2 cm inside the edge with 2 sigma of 6.7 cm there may have its truth outside the box."""
+    lower = np.array([-5.0, -5.0, -5.0, -0.5, -0.5, -0.5])
+    x = np.array([-1.24, 2.74, -0.17, -0.488, -0.10, -0.23])
+    two_sigma = np.array([0.24, 0.24, 0.24, 0.067, 0.037, 0.073])
+    assert box_edge(x, lower, -lower, 0.02) == []
+    assert box_edge(x, lower, -lower, 0.02, margin=two_sigma) == ["tx = -0.488 m (box -0.500..+0.500)"]
+    assert box_edge(x, lower, -lower, 0.02, margin=np.full(6, np.nan)) == []  # no deviation: the fraction alone
+    turns = np.array([2.3, 2.3, 2.3, 0.0, 0.0, 0.0])
+    assert box_edge(x, lower, -lower, 0.02, margin=turns) == ["ry = +2.740 deg (box -5.000..+5.000)"]
+
+
 def camera_centre_lidar(T_camera_lidar: NDArray[np.float64]) -> NDArray[np.float64]:
     """The camera's optical centre in the lidar frame, metres."""
     return invert(T_camera_lidar)[:3, 3]

@@ -51,6 +51,7 @@ from fleetcal.stages.calibration.timing import (
 )
 from fleetcal.stages.calibration.uncertainty import (
     BANDS_PER_FRAME,
+    SIGNIFICANCE,
     AxisDeviations,
     axis_deviations,
     band_scores,
@@ -184,12 +185,15 @@ PARAMETER_UNITS = (" deg", " deg", " deg", " m", " m", " m", "")  # as printed a
 
 
 def box_edge(x: NDArray[np.float64], lower: NDArray[np.float64], upper: NDArray[np.float64],
-             fraction: float, free: NDArray[np.bool_] | None = None) -> list[str]:
+             fraction: float, free: NDArray[np.bool_] | None = None,
+             margin: NDArray[np.float64] | None = None) -> list[str]:
     """The parameters of x (of those ``free`` to move, default all) that lie within ``fraction`` of the
-    box's half-width from its edge, each described as ``"ty = -0.500 m (box -0.500..0.500)"``."""
+    box's half-width from its edge, or within ``margin`` (per parameter, in its units; NaN: none) of it,
+    each described as ``"ty = -0.500 m (box -0.500..0.500)"``."""
     half = 0.5 * (upper - lower)
     centre = 0.5 * (upper + lower)
-    at_edge = np.abs(x - centre) >= (1.0 - fraction) * half
+    reach = np.maximum(fraction * half, 0.0 if margin is None else np.nan_to_num(margin[: x.size]))
+    at_edge = np.abs(x - centre) >= half - reach
     if free is not None:
         at_edge &= free
     return [f"{PARAMETER_NAMES[i]} = {x[i]:+.3f}{PARAMETER_UNITS[i]} (box {lower[i]:+.3f}..{upper[i]:+.3f})"
@@ -540,6 +544,8 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     uncertain = _uncertain_axes(deviations.rotation_deg, deviations.translation_m, cfg)
     reason = ""
     edge = box_edge(x_best, problem.lower, problem.upper, cfg.box_edge_fraction, problem.free_parameters(hold))
+    near_edge = box_edge(x_best, problem.lower, problem.upper, cfg.box_edge_fraction, problem.free_parameters(hold),
+                         SIGNIFICANCE * np.concatenate([deviations.rotation_deg, deviations.translation_m]))
     on_limit = problem.overlap_limited(x_best, cfg.box_edge_fraction) if cfg.min_overlap_fraction > 0 else []
     if cfg.metric == "gom" and score < cfg.gom_suspect_below:
         reason = (f"GOM {score:.3f} is below {cfg.gom_suspect_below}: the lidar's edges and the image's hardly line up "
@@ -575,6 +581,9 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
             sources += f"; the score fixes the translation along {', '.join(loose)} loosely against the rotation"
         reason = (f"{why} uncertain beyond {cfg.agree_rotation_deg:g} deg / {100 * cfg.agree_translation_m:g} cm "
                   f"(2 sigma: {', '.join(uncertain)}{sources}): " + _more_evidence(len(frames)))
+    elif near_edge:
+        reason = (f"the search box's edge lies within twice the estimate's deviation ({'; '.join(near_edge)}): the "
+                  "truth may lie outside the box; check the initial guess or widen --search-deg / --search-m")
     verdict: Verdict
     if reason:
         verdict = "suspect"
