@@ -148,7 +148,8 @@ def load_real(name: str, quick: bool) -> Case | None:
 
 
 def load_sim(name: str, out: Path, quick: bool, frames: int = SIM_FRAMES) -> Case:
-    """The simulated rig ``name`` (``SIM`` or ``MORE_RIGS``), a street log of ``frames`` pairs (quick: 2) written into ``out``."""
+    """The simulated rig ``name`` (``SIM`` or ``MORE_RIGS``): a log of ``frames`` pairs (quick: 2) written into
+    ``out``."""
     from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log
 
     frames = 2 if quick else frames
