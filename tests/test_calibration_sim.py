@@ -29,7 +29,7 @@ from fleetcal.pipeline.transforms import rotation_error_deg, translation_error_m
 from fleetcal.readers.frames import load_tf_tree
 from fleetcal.readers.open import open_log
 from fleetcal.stages.calibration import CalibrationFrame, SolverConfig, calibrate
-from fleetcal.workflows.calibrate import collect_frames, initial_guess
+from fleetcal.workflows.calibrate import collect_frames, initial_guess, solver_config
 from fleetcal.workflows.simulator.truth import load_truth, truth_path_for
 from fleetcal.workflows.simulator.write import SimulationOptions, simulate_log
 from tests.test_calibration_synthetic import perturb
@@ -334,3 +334,17 @@ def test_sparse_lidar_estimate_is_within_bounds_or_flagged(sim_dir: Path) -> Non
     within = rot <= 0.5 and trans <= 0.15
     assert within or result.verdict == "suspect", f"{rot:.2f} deg / {trans:.3f} m but {result.verdict}"
     assert result.verdict != "suspect" or result.verdict_reason
+
+
+@pytest.mark.slow
+def test_a_corridor_keeps_the_6dof_estimate_its_held_translation_scores_clearly_below(sim_dir: Path) -> None:
+    """3 m corridors, 6 frames, 2 deg / 12 cm off (start seed 1001). No seeded 6-DoF run confirms another, and the
+    runs with the translation held at the start's agree on 2.3 deg off: in a scene this near, a rotation makes up
+    for the held 12 cm. The best 6-DoF run (0.35 deg / 2 cm) scores 0.792 against their 0.741, clearly higher over
+    the image bands, so the log fixes the translation and the 6-DoF estimate stands (``suspect``: unconfirmed)."""
+    frames, _, T_true = simulated_frames(sim_dir, "corridor", "auto", 6)
+    result = calibrate(frames, perturb(T_true, 2.0, 0.12, seed=1001), solver_config(Config()))
+    assert not result.translation_held
+    assert rotation_error_deg(result.T_camera_lidar, T_true) < 0.5
+    assert translation_error_m(result.T_camera_lidar, T_true) < 0.05
+    assert result.verdict == "suspect"

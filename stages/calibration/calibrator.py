@@ -489,7 +489,8 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
             and _agreeing(runs, best_index, cfg) == 0):  # the translation may be what the runs disagree on
         clock.runs += cfg.repeats
         held_runs, held_best = _seeded_runs(problem, cfg, True, clock)
-        if _agreeing(held_runs, held_best, cfg) > 0:  # fewer unknowns, confirmed: preferred to an unconfirmed 6 DoF
+        if (_agreeing(held_runs, held_best, cfg) > 0  # fewer unknowns, confirmed: preferred to an unconfirmed 6 DoF
+                and not _clearly_better(problem, runs[best_index], held_runs[held_best])):  # unless the scene says not
             replaced, runs, best_index, hold = runs, held_runs, held_best, True
     best_run = runs[best_index]
     score, x_best, iterations = best_run.score, best_run.x, best_run.iterations
