@@ -268,6 +268,10 @@ def test_box_edge_reaches_as_far_as_twice_the_estimates_deviation() -> None:
     assert box_edge(x, lower, -lower, 0.02, margin=np.full(6, np.nan)) == []  # no deviation: the fraction alone
     turns = np.array([2.3, 2.3, 2.3, 0.0, 0.0, 0.0])
     assert box_edge(x, lower, -lower, 0.02, margin=turns) == ["ry = +2.740 deg (box -5.000..+5.000)"]
+    with_focal = np.append(x, 1.099)  # a searched focal scale: its edge keeps the fraction
+    lower7, upper7 = np.append(lower, 0.9), np.append(-lower, 1.1)
+    assert box_edge(with_focal, lower7, upper7, 0.02, margin=two_sigma) == [
+        "tx = -0.488 m (box -0.500..+0.500)", "focal_scale = +1.099 (box +0.900..+1.100)"]
 
 
 def camera_centre_lidar(T_camera_lidar: NDArray[np.float64]) -> NDArray[np.float64]:

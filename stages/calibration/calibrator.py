@@ -192,7 +192,10 @@ def box_edge(x: NDArray[np.float64], lower: NDArray[np.float64], upper: NDArray[
     each described as ``"ty = -0.500 m (box -0.500..0.500)"``."""
     half = 0.5 * (upper - lower)
     centre = 0.5 * (upper + lower)
-    reach = np.maximum(fraction * half, 0.0 if margin is None else np.nan_to_num(margin[: x.size]))
+    reach = fraction * half
+    if margin is not None:  # parameters beyond the margin's (a focal scale) keep the fraction
+        given = np.nan_to_num(np.asarray(margin, dtype=np.float64))[: x.size]
+        reach[: given.size] = np.maximum(reach[: given.size], given)
     at_edge = np.abs(x - centre) >= half - reach
     if free is not None:
         at_edge &= free
