@@ -191,7 +191,7 @@ def test_kitti_far_start_held_by_the_overlap_limit_is_suspect() -> None:
 @pytest.mark.slow
 def test_kitti_one_frame_drawn_to_the_box_edge_is_suspect() -> None:
     """The log's first frame alone (a street open ahead), from ``bench_starts.py``'s start 4 (2 deg / 12 cm off):
-    every seeded run ends 3.1 deg / 51 cm off, tx 1.2 cm inside the box's edge where its 2 sigma is 6.7 cm, so
+    two seeded runs agree on 3.1 deg / 51 cm off, tx 1.2 cm inside the box's edge where its 2 sigma is 6.7 cm, so
     the truth may lie beyond the edge. That had been ``recalibrated``; it must be within 0.5 deg / 15 cm or
     ``suspect``."""
     log_path("kitti_2011_09_26.mcap")
