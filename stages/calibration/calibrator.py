@@ -536,19 +536,20 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     ring_deg, slant_deg = (_finite_median(problem.ring_spacing_rad, np.degrees),
                            _finite_median(problem.ring_slant_deg))
     range_m, off_axis = problem.typical_range_and_off_axis()
-    aliases = (ring_alias_optima(problem, x_best, problem.free_parameters(hold), ring_deg, range_m, swarm_view)
+    free = problem.free_parameters(hold)
+    aliases = (ring_alias_optima(problem, x_best, free, ring_deg, range_m, swarm_view)
                if cfg.metric == "gom" and ring_deg > cfg.sparse_rings_above_deg else [])  # GOM: image bands
     deviations = axis_deviations(problem, x_best, [run.x for i, run in enumerate(runs) if i != best_index],
                                  np.linalg.norm([sampling_floor(ring_deg, problem.pixel_deg(), range_m, off_axis),
                                                  _timing_floor(clock_field, timing, cfg, T_best),
                                                  objective_floor()], axis=0),
-                                 problem.free_parameters(hold), aliases, [run.x for run in replaced],
+                                 free, aliases, [run.x for run in replaced],
                                  confirmed=confirmed)
     loose = _curvature_loosened(deviations, profile, cfg)
     uncertain = _uncertain_axes(deviations.rotation_deg, deviations.translation_m, cfg)
     reason = ""
-    edge = box_edge(x_best, problem.lower, problem.upper, cfg.box_edge_fraction, problem.free_parameters(hold))
-    near_edge = box_edge(x_best, problem.lower, problem.upper, cfg.box_edge_fraction, problem.free_parameters(hold),
+    edge = box_edge(x_best, problem.lower, problem.upper, cfg.box_edge_fraction, free)
+    near_edge = box_edge(x_best, problem.lower, problem.upper, cfg.box_edge_fraction, free,
                          SIGNIFICANCE * np.concatenate([deviations.rotation_deg, deviations.translation_m]))
     on_limit = problem.overlap_limited(x_best, cfg.box_edge_fraction) if cfg.min_overlap_fraction > 0 else []
     if cfg.metric == "gom" and score < cfg.gom_suspect_below:
