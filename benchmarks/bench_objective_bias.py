@@ -2,7 +2,8 @@
 simulated rig, without the search's luck.
 
 For each case of ``bench_starts.py`` (its real logs and simulated rigs, loaded the same way) the objective is
-built at the truth (lidar gradients taken there, the search box centred there) and a pattern search climbs
+the one ``calibrate`` searches from the truth (``calibrator.searched_objective``: lidar gradients taken there,
+the search box centred there, the lidar feature chosen there as ``calibrate`` chooses it) and a pattern search climbs
 from the truth over every free parameter (first steps 0.1 deg, 1 cm and a focal scale of 0.005, down to 2 %
 of them). The climb ends at the objective's own optimum next to the truth: its distance from the truth is the
 error no search can avoid on that log, whatever its starts and seeds, and a change to the objective (its
@@ -15,9 +16,9 @@ objective's bias alone; on real logs they include the error of the log's referen
 ``--solver KEY=VALUE`` changes a ``SolverConfig`` setting for every case (as in ``bench_starts.py``): the
 alternatives of docs/accuracy.md "Alternatives measured on the objective's own optimum" were judged so.
 
-Prints one row per case: rotation and translation error of the optimum, its per-axis errors (camera frame:
-rotation vector degrees, translation cm), the score it gained over the truth and the evaluations it took;
-then the median over the real logs and over the simulated rigs.
+Prints one row per case: the feature scored, rotation and translation error of the optimum, its per-axis errors
+(camera frame: rotation vector degrees, translation cm), the score it gained over the truth and the evaluations
+the climb took; then the median over the real logs and over the simulated rigs.
 """
 
 from __future__ import annotations
@@ -37,8 +38,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.bench_starts import REAL, SIM, Case, load_case, per_axis_errors, solver_overrides
 from fleetcal.pipeline.transforms import rotation_error_deg, translation_error_m
-from fleetcal.stages.calibration.calibrator import resolve_auto_rules
-from fleetcal.stages.calibration.problem import CalibrationProblem, embed, evaluate_embedded
+from fleetcal.stages.calibration.calibrator import searched_objective
+from fleetcal.stages.calibration.frame import AUTO_FEATURES
+from fleetcal.stages.calibration.problem import embed, evaluate_embedded
 from fleetcal.stages.calibration.pso import pattern_search
 from fleetcal.stages.calibration.uncertainty import LOCAL_POLISH_STEPS
 
@@ -57,12 +59,13 @@ class Optimum:
     axes_cm: NDArray[np.float64]
     gain: float
     evaluations: int
+    feature: str
 
 
 def optimum_near_truth(case: Case) -> Optimum:
     """The objective's local optimum nearest the truth of ``case``."""
-    config = resolve_auto_rules(case.frames, case.T_true, case.config)
-    problem = CalibrationProblem(case.frames, case.T_true, config)
+    problem, columns = searched_objective(case.frames, case.T_true, case.config)
+    chosen_after = problem.evaluations  # the feature choice's polishes
     x_truth = np.zeros(problem.lower.size)
     x_truth[6:] = 1.0  # a searched focal scale starts at 1
     free = problem.free_parameters()
@@ -73,15 +76,21 @@ def optimum_near_truth(case: Case) -> Optimum:
     T_best = problem.T_camera_lidar(embed(fit.best_x, x_truth, free)[0])
     axes_deg, axes_m = per_axis_errors(T_best, case.T_true)
     return Optimum(rotation_error_deg(T_best, case.T_true), 100 * translation_error_m(T_best, case.T_true),
-                   axes_deg, 100 * axes_m, fit.best_score - truth_score, problem.evaluations)
+                   axes_deg, 100 * axes_m, fit.best_score - truth_score, int(problem.evaluations - chosen_after),
+                   feature_name(columns))
+
+
+def feature_name(columns: tuple[int, ...] | None) -> str:
+    """The ``auto`` feature's columns the objective scores, by name (``frame.AUTO_FEATURES``; all: every one)."""
+    return "all" if columns is None else "+".join(AUTO_FEATURES[c] for c in columns)
 
 
 def row(name: str, found: Optimum) -> str:
     """One markdown table row."""
     axes_deg = " ".join(f"{v:+.3f}" for v in found.axes_deg)
     axes_cm = " ".join(f"{v:+.1f}" for v in found.axes_cm)
-    return (f"| {name} | {found.rot_deg:.3f} | {found.trans_cm:.1f} | {axes_deg} | {axes_cm} | {found.gain:.4f} | "
-            f"{found.evaluations} |")
+    return (f"| {name} | {found.feature} | {found.rot_deg:.3f} | {found.trans_cm:.1f} | {axes_deg} | {axes_cm} | "
+            f"{found.gain:.4f} | {found.evaluations} |")
 
 
 def main() -> None:
@@ -94,9 +103,9 @@ def main() -> None:
         overrides = solver_overrides(args.solver)
     except ValueError as exc:
         parser.error(str(exc))
-    print("| case | rotation deg | translation cm | about x y z (deg) | along x y z (cm) | score gained | "
+    print("| case | feature | rotation deg | translation cm | about x y z (deg) | along x y z (cm) | score gained | "
           "evaluations |")
-    print("|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|")
     found: dict[str, Optimum] = {}
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="fleetcal_bias_") as tmp:
@@ -111,7 +120,7 @@ def main() -> None:
         if names:
             rot = np.median([found[n].rot_deg for n in names])
             trans = np.median([found[n].trans_cm for n in names])
-            print(f"| **median, {label}** | {rot:.3f} | {trans:.1f} | | | | |")
+            print(f"| **median, {label}** | | {rot:.3f} | {trans:.1f} | | | | |")
     print(f"({time.perf_counter() - t0:.0f} s)")
 
 

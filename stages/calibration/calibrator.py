@@ -423,6 +423,16 @@ def _clearly_better(problem: CalibrationProblem, run: _Run, than: _Run) -> bool:
     return not scores_alike(scores[0] - scores[1])
 
 
+def searched_objective(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
+                       config: SolverConfig | None = None) -> tuple[CalibrationProblem, tuple[int, ...] | None]:
+    """The objective ``calibrate`` searches from ``T_camera_lidar_init``: its ``auto`` rules resolved and its
+    feature group chosen as there (``_feature_problem``); and that group's columns (None: every column)."""
+    cfg = resolve_auto_rules(frames, T_camera_lidar_init, config or SolverConfig())
+    clock = _SearchClock(None, cfg.repeats, cfg.max_iterations)
+    (problem, _), columns, _ = _feature_problem(frames, T_camera_lidar_init, cfg, cfg.holds_translation, clock)
+    return problem, columns
+
+
 def resolve_auto_rules(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
                       config: SolverConfig) -> SolverConfig:
     """``config`` with the data part of the ``auto`` rules applied (GOM only):
