@@ -69,6 +69,20 @@ def test_the_channel_the_images_follow_is_chosen_and_calibrates(auto_frames: lis
     assert runs_seen == told_runs
 
 
+def test_the_searched_objective_is_the_one_calibrate_chooses_and_searches(auto_frames: list[CalibrationFrame]) -> None:
+    """``calibrator.searched_objective`` (what a benchmark of the objective builds, without a search) is the
+    objective ``calibrate`` searched from the same start: the same feature columns, the same score at its
+    estimate."""
+    T_start = perturb(true_T_camera_lidar(), 2.0, 0.1, seed=3)
+    result = calibrate(auto_frames, T_start, SMALL)
+    problem, columns = calibrator.searched_objective(auto_frames, T_start, SMALL)
+    assert columns == result.feature_columns == (2,)
+    x_estimate = problem.x_of(result.T_camera_lidar)
+    assert float(problem.evaluate(x_estimate[None])[0]) == pytest.approx(result.score, abs=1e-9)
+    every_column, _ = calibrator.searched_objective(auto_frames, T_start, dataclasses.replace(SMALL, feature_groups=()))
+    assert float(every_column.evaluate(x_estimate[None])[0]) != pytest.approx(result.score, abs=1e-3)
+
+
 def test_an_intensity_that_the_images_do_not_show_is_not_chosen(auto_frames: list[CalibrationFrame],
                                                                monkeypatch: pytest.MonkeyPatch) -> None:
     """The same scans with an intensity of noise: range and normals explain more of the images' edges."""
