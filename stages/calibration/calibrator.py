@@ -67,8 +67,8 @@ Verdict = Literal["ok", "recalibrated", "suspect"]
 
 def _more_evidence(frames_used: int) -> str:
     """What a user can do about an uncertain estimate (``frames_used``: the image-scan pairs it came from)."""
-    return (f"use more frames (--frames; this used {frames_used} image-scan pairs) or a log with more "
-            "structure near the camera")
+    return (f"use more image-scan pairs (--frames, or a longer recording where all were used; this used "
+            f"{frames_used}) or a log with more structure near the camera")
 
 
 @dataclass
