@@ -11,7 +11,12 @@ features, gradients, weights) can be judged by it in minutes and without the noi
 small change to the score sends elsewhere. On the simulated rigs the truth is exact, so their figures are the
 objective's bias alone; on real logs they include the error of the log's reference calibration.
 
-    .venv/bin/python benchmarks/bench_objective_bias.py [--cases kitti sim-16 ...] [--solver KEY=VALUE ...]
+    .venv/bin/python benchmarks/bench_objective_bias.py [--cases kitti sim-16 ...] [--solver KEY=VALUE ...] [--aliases]
+
+``--aliases`` also moves each optimum 1-3 ring spacings either way along the lidar's axis and polishes there
+(``uncertainty.ring_alias_optima``): the best alias's score minus the optimum's (above 0, the objective itself
+prefers a pose a ring or more away, which no search from a drifted start can be expected to avoid) and its
+distance from the truth.
 
 ``--solver KEY=VALUE`` changes a ``SolverConfig`` setting for every case (as in ``bench_starts.py``): the
 alternatives of docs/accuracy.md "Alternatives measured on the objective's own optimum" were judged so.
@@ -40,9 +45,9 @@ from benchmarks.bench_starts import REAL, SIM, Case, load_case, per_axis_errors,
 from fleetcal.pipeline.transforms import rotation_error_deg, translation_error_m
 from fleetcal.stages.calibration.calibrator import searched_objective
 from fleetcal.stages.calibration.frame import AUTO_FEATURES
-from fleetcal.stages.calibration.problem import embed, evaluate_embedded
+from fleetcal.stages.calibration.problem import CalibrationProblem, embed, evaluate_embedded
 from fleetcal.stages.calibration.pso import pattern_search
-from fleetcal.stages.calibration.uncertainty import LOCAL_POLISH_STEPS
+from fleetcal.stages.calibration.uncertainty import LOCAL_POLISH_STEPS, ring_alias_optima
 
 MIN_STEP_FRACTION = 0.02
 """The climb stops once its steps are this fraction of the first ones (0.002 deg, 0.2 mm)."""
@@ -60,10 +65,13 @@ class Optimum:
     gain: float
     evaluations: int
     feature: str
+    alias_gain: float = float("nan")
+    alias_cm: float = float("nan")
 
 
-def optimum_near_truth(case: Case) -> Optimum:
-    """The objective's local optimum nearest the truth of ``case``."""
+def optimum_near_truth(case: Case, aliases: bool = False) -> Optimum:
+    """The objective's local optimum nearest the truth of ``case``; with ``aliases``, also how much higher its best
+    ring alias scores (``best_alias``)."""
     problem, columns = searched_objective(case.frames, case.T_true, case.config)
     chosen_after = problem.evaluations  # the feature choice's polishes
     x_truth = np.zeros(problem.lower.size)
@@ -73,11 +81,31 @@ def optimum_near_truth(case: Case) -> Optimum:
     fit = pattern_search(partial(evaluate_embedded, problem, base=x_truth, free=free), x_truth[free],
                          LOCAL_POLISH_STEPS[: x_truth.size][free], problem.lower[free], problem.upper[free],
                          min_step_fraction=MIN_STEP_FRACTION, score_at_x0=truth_score)
-    T_best = problem.T_camera_lidar(embed(fit.best_x, x_truth, free)[0])
+    x_best = embed(fit.best_x, x_truth, free)[0]
+    T_best = problem.T_camera_lidar(x_best)
     axes_deg, axes_m = per_axis_errors(T_best, case.T_true)
-    return Optimum(rotation_error_deg(T_best, case.T_true), 100 * translation_error_m(T_best, case.T_true),
-                   axes_deg, 100 * axes_m, fit.best_score - truth_score, int(problem.evaluations - chosen_after),
-                   feature_name(columns))
+    found = Optimum(rotation_error_deg(T_best, case.T_true), 100 * translation_error_m(T_best, case.T_true),
+                    axes_deg, 100 * axes_m, fit.best_score - truth_score, int(problem.evaluations - chosen_after),
+                    feature_name(columns))
+    if aliases:
+        found.alias_gain, found.alias_cm = best_alias(problem, x_best, fit.best_score, case.T_true)
+    return found
+
+
+def best_alias(problem: CalibrationProblem, x_best: NDArray[np.float64], best_score: float,
+               T_true: NDArray[np.float64]) -> tuple[float, float]:
+    """(score of the best ring alias of the optimum ``x_best`` minus ``best_score``, its distance from the truth in
+    cm): the optimum moved 1-3 ring spacings either way along the lidar's axis and polished
+    (``uncertainty.ring_alias_optima``); above 0, the objective itself prefers an optimum that far away. NaN where no
+    move stays in the box."""
+    ring_deg = float(np.degrees(np.nanmedian(problem.ring_spacing_rad)))
+    range_m, _ = problem.typical_range_and_off_axis()
+    optima = ring_alias_optima(problem, x_best, problem.free_parameters(), ring_deg, range_m)
+    if not optima:
+        return float("nan"), float("nan")
+    scores = problem.evaluate(np.vstack(optima))
+    k = int(np.argmax(scores))
+    return float(scores[k]) - best_score, 100 * translation_error_m(problem.T_camera_lidar(optima[k]), T_true)
 
 
 def feature_name(columns: tuple[int, ...] | None) -> str:
@@ -89,8 +117,10 @@ def row(name: str, found: Optimum) -> str:
     """One markdown table row."""
     axes_deg = " ".join(f"{v:+.3f}" for v in found.axes_deg)
     axes_cm = " ".join(f"{v:+.1f}" for v in found.axes_cm)
+    alias = "" if np.isnan(found.alias_cm) and np.isnan(found.alias_gain) else (
+        f" {found.alias_gain:+.4f} | {found.alias_cm:.1f} |")
     return (f"| {name} | {found.feature} | {found.rot_deg:.3f} | {found.trans_cm:.1f} | {axes_deg} | {axes_cm} | "
-            f"{found.gain:.4f} | {found.evaluations} |")
+            f"{found.gain:.4f} | {found.evaluations} |{alias}")
 
 
 def main() -> None:
@@ -98,14 +128,16 @@ def main() -> None:
     parser.add_argument("--cases", nargs="*", default=[*REAL, *SIM], choices=[*REAL, *SIM])
     parser.add_argument("--solver", action="append", default=[], metavar="KEY=VALUE",
                         help="a SolverConfig setting for every case (repeatable), e.g. neighbours_by=angle")
+    parser.add_argument("--aliases", action="store_true",
+                        help="also score the optimum's ring aliases: the best one's gain and distance from the truth")
     args = parser.parse_args()
     try:
         overrides = solver_overrides(args.solver)
     except ValueError as exc:
         parser.error(str(exc))
     print("| case | feature | rotation deg | translation cm | about x y z (deg) | along x y z (cm) | score gained | "
-          "evaluations |")
-    print("|---|---|---|---|---|---|---|---|")
+          "evaluations |" + (" best alias gain | its distance cm |" if args.aliases else ""))
+    print("|---|---|---|---|---|---|---|---|" + ("---|---|" if args.aliases else ""))
     found: dict[str, Optimum] = {}
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="fleetcal_bias_") as tmp:
@@ -113,14 +145,14 @@ def main() -> None:
             case = load_case(name, Path(tmp), False, overrides)
             if case is None:
                 continue
-            found[name] = optimum_near_truth(case)
+            found[name] = optimum_near_truth(case, args.aliases)
             print(row(name, found[name]), flush=True)
     for label, group in (("real logs", REAL), ("simulated rigs", SIM)):
         names = [n for n in found if n in group]
         if names:
             rot = np.median([found[n].rot_deg for n in names])
             trans = np.median([found[n].trans_cm for n in names])
-            print(f"| **median, {label}** | | {rot:.3f} | {trans:.1f} | | | | |")
+            print(f"| **median, {label}** | | {rot:.3f} | {trans:.1f} | | | | |" + (" | |" if args.aliases else ""))
     print(f"({time.perf_counter() - t0:.0f} s)")
 
 
