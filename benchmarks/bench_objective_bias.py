@@ -65,15 +65,15 @@ class Optimum:
     gain: float
     evaluations: int
     feature: str
-    alias_gain: float = float("nan")
-    alias_cm: float = float("nan")
+    alias: tuple[float, float] | None = None
+    """With ``--aliases``: ``best_alias`` (gain, distance from the truth cm; NaN where no move stays in the box)."""
 
 
 def optimum_near_truth(case: Case, aliases: bool = False) -> Optimum:
     """The objective's local optimum nearest the truth of ``case``; with ``aliases``, also how much higher its best
     ring alias scores (``best_alias``)."""
     problem, columns = searched_objective(case.frames, case.T_true, case.config)
-    chosen_after = problem.evaluations  # the feature choice's polishes
+    evaluations_before_climb = problem.evaluations  # the feature choice's polishes
     x_truth = np.zeros(problem.lower.size)
     x_truth[6:] = 1.0  # a searched focal scale starts at 1
     free = problem.free_parameters()
@@ -85,10 +85,10 @@ def optimum_near_truth(case: Case, aliases: bool = False) -> Optimum:
     T_best = problem.T_camera_lidar(x_best)
     axes_deg, axes_m = per_axis_errors(T_best, case.T_true)
     found = Optimum(rotation_error_deg(T_best, case.T_true), 100 * translation_error_m(T_best, case.T_true),
-                    axes_deg, 100 * axes_m, fit.best_score - truth_score, int(problem.evaluations - chosen_after),
-                    feature_name(columns))
+                    axes_deg, 100 * axes_m, fit.best_score - truth_score,
+                    int(problem.evaluations - evaluations_before_climb), feature_name(columns))
     if aliases:
-        found.alias_gain, found.alias_cm = best_alias(problem, x_best, fit.best_score, case.T_true)
+        found.alias = best_alias(problem, x_best, fit.best_score, case.T_true)
     return found
 
 
@@ -117,8 +117,7 @@ def row(name: str, found: Optimum) -> str:
     """One markdown table row."""
     axes_deg = " ".join(f"{v:+.3f}" for v in found.axes_deg)
     axes_cm = " ".join(f"{v:+.1f}" for v in found.axes_cm)
-    alias = "" if np.isnan(found.alias_cm) and np.isnan(found.alias_gain) else (
-        f" {found.alias_gain:+.4f} | {found.alias_cm:.1f} |")
+    alias = "" if found.alias is None else f" {found.alias[0]:+.4f} | {found.alias[1]:.1f} |"
     return (f"| {name} | {found.feature} | {found.rot_deg:.3f} | {found.trans_cm:.1f} | {axes_deg} | {axes_cm} | "
             f"{found.gain:.4f} | {found.evaluations} |{alias}")
 
