@@ -62,8 +62,7 @@ from fleetcal.pipeline.config import Config
 from fleetcal.pipeline.errors import ConfigError
 from fleetcal.stages.calibration import CalibrationFrame, SolverConfig, calibrate
 from fleetcal.workflows.calibrate import solver_config
-from tests.test_calibration_real import per_axis_errors
-from tests.test_calibration_synthetic import perturb
+from tests.test_calibration_synthetic import per_axis_errors, perturb
 
 Mat4 = NDArray[np.float64]
 REAL = {"kitti": ("kitti_2011_09_26.mcap", {}),

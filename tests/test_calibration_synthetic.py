@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 import pytest
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from fleetcal.pipeline.camera_model import CameraModel
 from fleetcal.pipeline.errors import ConfigError, ProcessingError
@@ -38,6 +39,14 @@ from fleetcal.stages.lidar_features import compute_lidar_feature
 
 # lidar (x fwd, y left, z up) -> camera optical (x right, y down, z fwd), camera 0.3 m above, 0.1 m left
 R_OPTICAL_LIDAR = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+
+
+def per_axis_errors(T: NDArray[np.float64], T_true: NDArray[np.float64]) -> tuple[NDArray[np.float64],
+                                                                                   NDArray[np.float64]]:
+    """Rotation error (3,) deg (rotation vector) and translation error (3,) m of ``T`` against ``T_true``,
+    both in the camera frame (``T @ inv(T_true)``)."""
+    E = T @ np.linalg.inv(T_true)
+    return Rotation.from_matrix(E[:3, :3]).as_rotvec(degrees=True), E[:3, 3]
 
 
 def true_T_camera_lidar() -> NDArray[np.float64]:
@@ -171,8 +180,6 @@ def synthetic_frame(seed: int = 0, feature: str = "intensity", blur_sigma_px: fl
 def perturb(T: NDArray[np.float64], rot_deg: float, trans_m: float, seed: int) -> NDArray[np.float64]:
     """T moved by a rotation of ``rot_deg`` about a random axis (about the camera centre) and a
     translation of ``trans_m`` along another random axis, in the camera frame."""
-    from scipy.spatial.transform import Rotation
-
     rng = np.random.default_rng(seed)
     axis = rng.standard_normal(3)
     axis /= np.linalg.norm(axis)
@@ -354,26 +361,24 @@ def test_translation_profile_names_the_components_a_far_scene_does_not_fix(frame
     np.testing.assert_allclose(off.T_camera_lidar, near.T_camera_lidar)  # a diagnostic: the estimate is the same
 
 
-def test_a_long_move_along_weak_axes_from_a_trusted_start_is_suspect() -> None:
+def test_a_translation_the_scene_fixes_weakly_is_uncertain_by_its_deviations() -> None:
     """Far wall, start 1 deg off at the true camera centre, one 6-DoF run: the estimate slides along the
-    shift/turn ridge across the line of sight (x, y weak). Moving more than ``weak_move_max_m`` along weak
-    axes from a trusted start is ``suspect``; the estimate itself is the same either way, and a wide box
-    (an untrusted start) is exempt."""
+    shift/turn ridge across the line of sight (x, y weak; measured 17 cm off along y). No rule about the move
+    makes it ``suspect``: the score's curvature widens the translation's deviations along the weak axes until
+    twice them covers the truth on every axis, and the verdict follows from them, naming the loose axes."""
     wall = far_wall_frame()
     T_true = true_T_camera_lidar()
     T_init = perturb(T_true, 1.0, 0.0, seed=2)
-    cfg = SolverConfig(search_deg=2.0, search_m=0.5, n_particles=60, repeats=1, translation="estimate",
-                            weak_move_max_m=0.02)
-    strict = calibrate([wall], T_init, cfg)
-    moved_m = translation_error_m(strict.T_camera_lidar, T_init)
-    assert set(strict.weak_translation_axes) >= {"x"} and moved_m > 0.05, (strict.translation_profile, moved_m)
-    assert strict.verdict == "suspect" and "the log fixes weakly" in strict.verdict_reason, strict.verdict_reason
-    lenient = calibrate([wall], T_init, dataclasses.replace(cfg, weak_move_max_m=5.0))
-    assert "weakly" not in lenient.verdict_reason
-    np.testing.assert_allclose(lenient.T_camera_lidar, strict.T_camera_lidar)
+    cfg = SolverConfig(search_deg=2.0, search_m=0.5, n_particles=60, repeats=1, translation="estimate")
+    result = calibrate([wall], T_init, cfg)
+    assert set(result.weak_translation_axes) >= {"x", "y"}, result.translation_profile
+    assert translation_error_m(result.T_camera_lidar, T_true) > 0.1  # the ridge: a far wall cannot fix it
+    err_rot, err_trans = per_axis_errors(result.T_camera_lidar, T_true)
+    assert np.all(np.abs(err_rot) <= 2 * result.std_rotation_deg), (err_rot, result.std_rotation_deg)
+    assert np.all(np.abs(err_trans) <= 2 * result.std_translation_m), (err_trans, result.std_translation_m)
+    assert result.verdict == "suspect" and "uncertain beyond" in result.verdict_reason, result.verdict_reason
+    assert "loosely against the rotation" in result.verdict_reason, result.verdict_reason
     wide = calibrate([wall], T_init, dataclasses.replace(cfg, search_m=0.8))
-    assert "weakly" not in wide.verdict_reason
-    # the weak-move rule was reached and passed over: the (later) one-run rule of a wide box gave the reason
     assert "one seeded run in a wide search box" in wide.verdict_reason, wide.verdict_reason
 
 

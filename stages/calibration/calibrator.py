@@ -537,7 +537,6 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     agreeing = _agreeing(runs, best_index, cfg)
     confirmed = len(runs) < 2 or agreeing > 0
     weak = weak_axes(profile, cfg.weak_translation_ratio)
-    weak_move_m = float(np.linalg.norm([x_best[3 + AXES.index(a)] for a in weak])) if weak else 0.0
     chance = {"gom": 0.5, "nmi": 1.0, "levinson": 0.0}[cfg.metric]
     flat = _flat(problem, x_best, score, chance)
     initial_score = float(init_scores.mean())
@@ -579,10 +578,6 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     elif on_limit:
         reason = (f"the estimate sits on the overlap limit ({'; '.join(on_limit)}): fewer lidar points in view "
                   "would have scored higher; check the initial guess")
-    elif not cfg.wide_box and weak_move_m > cfg.weak_move_max_m:
-        reason = (f"the translation moved {100 * weak_move_m:.0f} cm along camera axes the log fixes weakly "
-                  f"({', '.join(weak)}); more than {100 * cfg.weak_move_max_m:.0f} cm from a trusted initial "
-                  "guess needs a log with nearer structure, or calibration.translation = \"hold\"")
     elif len(runs) == 1 and cfg.wide_box:
         reason = (f"one seeded run in a wide search box (+-{cfg.search_deg:g} deg, +-{cfg.search_m:g} m) with no "
                   "other run to confirm it: far optima lie in such a box; set calibration.repeats to 2 or more")

@@ -144,7 +144,8 @@ class SolverConfig:
             about the camera's axes (the paired tolerances 0.5 deg / 15 cm). Below
             ``weak_translation_ratio`` the axis is named in ``CalibrationResult.weak_translation_axes``: the
             log fixes that component less well than its rotation, treat it as rough. It never changes the
-            estimate, only the verdict (``weak_move_max_m``); ``profile_translation_m`` 0 turns it off. It is measured
+            estimate; the profile widens the translation's deviations (``uncertainty.curvature_deviation_m``),
+            and through them the verdict; ``profile_translation_m`` 0 turns it off. It is measured
             on the first run's swarm frames (``swarm_points``), so a long log's profile
             costs what the swarm's frames' does.
             Measured (defaults from each log's start, 6 DoF; camera x / y / z ratio, the estimate's error
@@ -160,21 +161,13 @@ class SolverConfig:
             Every component more than 5 cm off is named but one, nuScenes' y (firm, yet 23 cm off: a biased
             optimum, which no profile sees); so are three that came out within 4 cm (KITTI z, rig2 z,
             nuScenes z): weakly fixed, not necessarily wrong.
-        weak_move_max_m: from a trusted start (not ``wide_box``), an estimate whose translation moved more
-            than this along the axes the profile names weak is ``suspect``: the log does not fix the
-            translation there well enough to move a drifted factory calibration that far (``inf``: off).
-            Twice the accuracy asked (15 cm): a right estimate from a start 12 cm off moves up to about
-            12 cm plus its own error (KITTI, lidar view, 6 starts: up to 16 cm, all within 0.2 deg / 5 cm),
-            while PJLab rig1's wrong ones moved 34-52 cm (lidar view, 4 of 5 starts 0.77-0.86 deg / 34-46
-            cm off, ``recalibrated`` before). The estimate is unchanged: holding the weak axes instead cost
-            rotation (rig1 from its third start: 0.81 deg / 41 cm -> 2.04 deg / 11 cm).
         sparse_rings_above_deg: a lidar whose rings lie further apart than this (median over the frames of
             ``sphere_gradients.ring_spacing_rad``) has ``CalibrationResult.sparse_rings``: its translation is
             rough even where every check passes. Measured, 6 DoF from the log's start or a few starts: every
             rig with rings 1.33-2 deg apart came out 18-36 cm off, mostly ``recalibrated`` (nuScenes, 32 beams,
             6 starts: 19-36 cm; simulated 32 beams 20-34 cm; simulated 16 beams 18 cm). With rings 0.42 deg
             apart or finer: KITTI (0.36 deg) 4-7 cm, PJLab rig2 (0.17 deg) 14-16 cm, simulated 64 beams 1-3 cm;
-            PJLab rig1's 34-46 cm are named by the translation profile (``weak_move_max_m``). Between 0.42 and
+            PJLab rig1's 34-46 cm are named by the translation profile. Between 0.42 and
             1.33 deg is unmeasured. Why, on the simulated 32 beams: near ground lines up with the image only
             by chance there (GOM 0.49 vs 0.79 with 64 beams), and eq. 11's denominator lets a pose 30 cm off
             score higher by moving those points onto weaker image gradients (README). Such a rig's estimate
@@ -236,8 +229,8 @@ class SolverConfig:
               0.200 / 2.9;
             - PJLab rig1 (no return nearer than ~4 m) is the exception: 0.533 / 12.2 (2 of 5, the others
               0.53-0.75 deg) -> 0.807 / 41.4 (0 of 5): the lidar view's runs agree on an optimum ~40 cm
-              along the optical axis, which the translation profile names weak, so those estimates are
-              ``suspect`` (``weak_move_max_m``);
+              along the optical axis, which the translation profile names weak; their deviations make
+              those estimates ``suspect``;
             - nuScenes (32 beams) took the lidar view before as well (rings too sparse for the camera's).
             Choosing the camera view for boxes up to 5 deg / 0.5 m on evidence from
             one start per log (the log's tf), where it was ahead on KITTI (0.133 deg / 7.2 cm vs 0.189 /
@@ -246,7 +239,7 @@ class SolverConfig:
             lidar view vs 0 of 10 (``bench_gom.py --seeds 10``).
         wide_box_above_deg, wide_box_above_m: a box wider than either (``search_deg``
             or ``search_m``) is wide (``wide_box``): exploration then applies, and the start is not trusted
-            (no translation hold, no ``weak_move_max_m``).
+            (no translation hold).
         gradient_fit: ``paper`` (Algorithm 1, ``sum dv dx``) or ``lsq`` (least-squares gradient over the
             K neighbours; unbiased when rings are further apart than columns, see ``sphere_kernels``), or
             ``auto`` (default): ``lsq`` with the lidar viewpoint, ``paper`` with the camera's. Lidar
@@ -353,7 +346,6 @@ class SolverConfig:
     profile_translation_m: float = 0.15
     profile_rotation_deg: float = 0.5
     weak_translation_ratio: float = 1.0
-    weak_move_max_m: float = 0.3
     sparse_rings_above_deg: float = 1.0
     slanted_rings_above_deg: float = 30.0
     agree_rotation_deg: float = 0.5
@@ -449,9 +441,9 @@ class SolverConfig:
         if self.score_tolerance is not None and not self.score_tolerance >= 0:
             raise ConfigError("score_tolerance must be >= 0")
         if not (0 <= self.profile_translation_m <= 5 and self.profile_rotation_deg > 0
-                and self.weak_translation_ratio >= 0 and self.weak_move_max_m > 0):
+                and self.weak_translation_ratio >= 0):
             raise ConfigError("need 0 <= profile_translation_m <= 5, profile_rotation_deg > 0, "
-                              "weak_translation_ratio >= 0 and weak_move_max_m > 0")
+                              "weak_translation_ratio >= 0")
         if not self.sparse_rings_above_deg > 0 or not 0 <= self.slanted_rings_above_deg <= 90:
             raise ConfigError("need sparse_rings_above_deg > 0 and 0 <= slanted_rings_above_deg <= 90")
         if not 0 <= self.box_edge_fraction < 1:
