@@ -39,7 +39,13 @@ from fleetcal.stages.calibration.config import SolverConfig
 from fleetcal.stages.calibration.feature_choice import CHOICE_POLISH_MIN_STEP, frame_sharpness, sharper
 from fleetcal.stages.calibration.frame import CalibrationFrame, Mat4, fold_rectification, usable_groups, with_columns
 from fleetcal.stages.calibration.observability import AXES, translation_profile, weak_axes
-from fleetcal.stages.calibration.problem import CalibrationProblem, SharedPreparation, embed, ring_slant_deg
+from fleetcal.stages.calibration.problem import (
+    CalibrationProblem,
+    ScoringView,
+    SharedPreparation,
+    embed,
+    ring_slant_deg,
+)
 from fleetcal.stages.calibration.pso import pattern_search
 from fleetcal.stages.calibration.sphere_gradients import cross_ring_neighbours, ring_spacing_rad, sphere_coordinates
 from fleetcal.stages.calibration.timing import (
@@ -477,6 +483,189 @@ def slanted_sparse_rings(ring_deg: float, slant_deg: float, config: SolverConfig
     return bool(ring_deg > config.sparse_rings_above_deg and slant_deg > config.slanted_rings_above_deg)
 
 
+@dataclass
+class _Searched:
+    """The seeded runs ``calibrate`` returns the best of (``best``), whether their translation was held, and the
+    6-DoF runs a held translation replaced (their spread is its deviation)."""
+
+    runs: list[_Run]
+    best: int
+    hold: bool
+    replaced: list[_Run]
+
+
+def _searched(problem: CalibrationProblem, cfg: SolverConfig, hold: bool, clock: _SearchClock,
+              first: _Run | None) -> _Searched:
+    """The seeded runs (``_seeded_runs``); where no 6-DoF run confirms another from a trusted start (``auto``),
+    runs with the translation held at the initial guess's, which replace them where they confirm one another
+    and the best 6-DoF run does not score clearly higher (then the scene fixes the translation)."""
+    runs, best = _seeded_runs(problem, cfg, hold, clock, first)
+    if (cfg.translation == "auto" and not hold and not cfg.wide_box and cfg.repeats > 1
+            and _agreeing(runs, best, cfg) == 0):  # the translation may be what the runs disagree on
+        clock.runs += cfg.repeats
+        held_runs, held_best = _seeded_runs(problem, cfg, True, clock)
+        if (_agreeing(held_runs, held_best, cfg) > 0  # fewer unknowns, confirmed: preferred to an unconfirmed 6 DoF
+                and not _clearly_better(problem, runs[best], held_runs[held_best])):  # unless the scene says not
+            return _Searched(held_runs, held_best, True, runs)
+    return _Searched(runs, best, hold, [])
+
+
+@dataclass
+class _Estimate:
+    """The best run refined: its score, parameters (D,), iterations, the clock it was refined under (None: not
+    estimated) and its translation profile (``observability.translation_profile``; NaN: not measured)."""
+
+    score: float
+    x: NDArray[np.float64]
+    iterations: int
+    timing: TimingEstimate | None
+    profile: NDArray[np.float64]
+
+
+def _refined(problem: CalibrationProblem, cfg: SolverConfig, searched: _Searched, clock_field: TimeShiftField | None,
+             swarm_view: ScoringView) -> _Estimate:
+    """The best run polished on every frame (where its swarm scored fewer), refined under the clock offset and
+    readout asked for, and its translation profiled."""
+    best = searched.runs[searched.best]
+    score, x, iterations = best.score, best.x, best.iterations
+    if cfg.polish and swarm_view is not problem.full:  # the runs were polished on their swarms' frames
+        polished = problem.polish_everywhere(x, searched.hold, score)
+        score, x, iterations = polished.best_score, polished.best_x, iterations + polished.iterations
+    timing = _estimate_timing(problem, clock_field, x, searched.hold, cfg)
+    if timing is not None:
+        score, x = timing.score, timing.x
+    profile = np.full(3, np.nan)
+    if not searched.hold and cfg.profile_translation_m > 0:
+        profile = translation_profile(problem, x, cfg.profile_translation_m, cfg.profile_rotation_deg, swarm_view)
+    return _Estimate(score, x, iterations, timing, profile)
+
+
+def _checked_points(problem: CalibrationProblem, cfg: SolverConfig, x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Per-frame scores (F,) at ``x``.
+
+    Raises:
+        ProcessingError: the camera sees fewer than ``min_points`` lidar points there.
+    """
+    scores, counts = problem.frame_scores(x[None])
+    if int(counts.sum()) < cfg.min_points:
+        raise ProcessingError(
+            f"the camera sees {int(counts.sum())} lidar points at the best pose in the search box "
+            f"(+-{cfg.search_deg} deg, +-{cfg.search_m} m around the initial guess); need {cfg.min_points}")
+    return np.asarray(scores[0])
+
+
+def _estimate_T(problem: CalibrationProblem, estimate: _Estimate, clock_field: TimeShiftField | None) -> Mat4:
+    """The estimate's extrinsic, with the mean ego-motion the searched extrinsic absorbed taken out where the
+    frames move (``TimeShiftField.extrinsic_correction``)."""
+    T_best = problem.T_camera_lidar(estimate.x)
+    if clock_field is not None:
+        shift = estimate.timing.shift if estimate.timing is not None else TimeShift()
+        T_best = T_best @ clock_field.extrinsic_correction(shift, clock_field.row_fractions(estimate.x))
+    return T_best
+
+
+def _run_spread(searched: _Searched, T_best: Mat4) -> tuple[float, float]:
+    """Root mean square rotation (deg) and translation (m) distance of the runs from ``T_best``; NaN with one run
+    (the translation's also where it was held)."""
+    if len(searched.runs) < 2:
+        return float("nan"), float("nan")
+    Ts = [run.T_camera_lidar for run in searched.runs]
+    rotation = float(np.sqrt(np.mean([rotation_error_deg(T, T_best) ** 2 for T in Ts])))
+    translation = (float("nan") if searched.hold
+                   else float(np.sqrt(np.mean([translation_error_m(T, T_best) ** 2 for T in Ts]))))
+    return rotation, translation
+
+
+@dataclass
+class _Rings:
+    """A scan's rings over the frames (medians): their spacing and how far they cross the image slanted, degrees
+    (NaN: untold)."""
+
+    spacing_deg: float
+    slant_deg: float
+
+
+def _deviations(problem: CalibrationProblem, cfg: SolverConfig, searched: _Searched, estimate: _Estimate,
+                rings: _Rings, clock_field: TimeShiftField | None, T_best: Mat4,
+                swarm_view: ScoringView) -> tuple[AxisDeviations, list[str]]:
+    """The estimate's per-axis deviations (``uncertainty.axis_deviations``: the other runs, ring aliases on
+    sparse rings, the replaced runs and the sampling, clock and objective floors), each translation raised to
+    the score's curvature (``_curvature_loosened``), and the axes that raising widened beyond the accuracy
+    asked."""
+    range_m, off_axis = problem.typical_range_and_off_axis()
+    free = problem.free_parameters(searched.hold)
+    aliases = (ring_alias_optima(problem, estimate.x, free, rings.spacing_deg, range_m, swarm_view)
+               if cfg.metric == "gom" and rings.spacing_deg > cfg.sparse_rings_above_deg else [])  # GOM: image bands
+    floor = np.linalg.norm([sampling_floor(rings.spacing_deg, problem.pixel_deg(), range_m, off_axis),
+                            _timing_floor(clock_field, estimate.timing, cfg, T_best), objective_floor()], axis=0)
+    others = [run.x for i, run in enumerate(searched.runs) if i != searched.best]
+    deviations = axis_deviations(problem, estimate.x, others, floor, free, aliases,
+                                 [run.x for run in searched.replaced], confirmed=_confirmed(searched, cfg))
+    return deviations, _curvature_loosened(deviations, estimate.profile, cfg)
+
+
+def _confirmed(searched: _Searched, cfg: SolverConfig) -> bool:
+    """One run, or another seeded run within ``agree_rotation_deg`` / ``agree_translation_m`` of the best."""
+    return len(searched.runs) < 2 or _agreeing(searched.runs, searched.best, cfg) > 0
+
+
+def _suspect_reason(problem: CalibrationProblem, cfg: SolverConfig, searched: _Searched, estimate: _Estimate,
+                    deviations: AxisDeviations, loose: list[str], rings: _Rings, flat: bool, auto_angle: bool,
+                    frames_used: int) -> str:
+    """Why the estimate is ``suspect``, with what the user can do; "" where nothing is wrong. The first that
+    applies of: a score no better than chance, a flat optimum, sparse slanted rings, the box's edge, the
+    overlap limit, one run in a wide box, deviations beyond the accuracy asked, the box's edge within twice
+    the deviations."""
+    x, free = estimate.x, problem.free_parameters(searched.hold)
+    edge = box_edge(x, problem.lower, problem.upper, cfg.box_edge_fraction, free)
+    on_limit = problem.overlap_limited(x, cfg.box_edge_fraction) if cfg.min_overlap_fraction > 0 else []
+    uncertain = _uncertain_axes(deviations.rotation_deg, deviations.translation_m, cfg)
+    if cfg.metric == "gom" and estimate.score < cfg.gom_suspect_below:
+        return (f"GOM {estimate.score:.3f} is below {cfg.gom_suspect_below}: the lidar's edges and the image's hardly "
+                "line up anywhere in the search box; check that the topics see the same scene, the camera's "
+                "intrinsics and the initial guess")
+    if flat:
+        return "flat optimum: turning the estimate 1 deg barely changes the score; " + _more_evidence(frames_used)
+    if cfg.metric == "gom" and slanted_sparse_rings(rings.spacing_deg, rings.slant_deg, cfg):  # measured on GOM only
+        return (f"the lidar's rings lie {rings.spacing_deg:.2f} deg apart and cross the image slanted "
+                f"{rings.slant_deg:.0f} deg (sphere neighbours by angle{', auto' if auto_angle else ''}): rings this "
+                "sparse and slanted leave the rotation uncertain by tenths of a degree or more; check the estimate "
+                "against a reference before using it")
+    if edge:
+        return (f"the estimate is at the edge of the search box ({'; '.join(edge)}): the best pose may lie "
+                "outside it; check the initial guess or widen --search-deg / --search-m")
+    if on_limit:
+        return (f"the estimate sits on the overlap limit ({'; '.join(on_limit)}): fewer lidar points in view "
+                "would have scored higher; check the initial guess")
+    if len(searched.runs) == 1 and cfg.wide_box:
+        return (f"one seeded run in a wide search box (+-{cfg.search_deg:g} deg, +-{cfg.search_m:g} m) with no "
+                "other run to confirm it: far optima lie in such a box; set calibration.repeats to 2 or more")
+    if uncertain:
+        return _uncertain_reason(cfg, searched, deviations, loose, uncertain, frames_used)
+    near_edge = box_edge(x, problem.lower, problem.upper, cfg.box_edge_fraction, free,
+                         SIGNIFICANCE * np.concatenate([deviations.rotation_deg, deviations.translation_m]))
+    if near_edge:
+        return (f"the search box's edge lies within twice the estimate's deviation ({'; '.join(near_edge)}): the "
+                "truth may lie outside the box; check the initial guess or widen --search-deg / --search-m")
+    return ""
+
+
+def _uncertain_reason(cfg: SolverConfig, searched: _Searched, deviations: AxisDeviations, loose: list[str],
+                      uncertain: list[str], frames_used: int) -> str:
+    """The reason of an estimate whose two deviations exceed the accuracy asked on the ``uncertain`` axes:
+    where they come from and what would narrow them."""
+    why = ("the seeded 6-DoF runs disagree, so the translation was held at the initial guess's; their spread "
+           "leaves the estimate" if searched.replaced else "the estimate is")
+    unconfirmed = ("" if _confirmed(searched, cfg)
+                   else f", none of the {len(searched.runs)} seeded runs confirms another")
+    sources = ("" if searched.replaced else f"; {deviations.alike_runs} other seeded run(s) and "
+               f"{deviations.alike_aliases} optima a few lidar rings away score as well{unconfirmed}")
+    if loose:
+        sources += f"; the score fixes the translation along {', '.join(loose)} loosely against the rotation"
+    return (f"{why} uncertain beyond {cfg.agree_rotation_deg:g} deg / {100 * cfg.agree_translation_m:g} cm "
+            f"(2 sigma: {', '.join(uncertain)}{sources}): " + _more_evidence(frames_used))
+
+
 def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
               config: SolverConfig | None = None, progress: ProgressCallback | None = None) -> CalibrationResult:
     """Estimate ``T_camera_lidar`` from paired frames, starting at ``T_camera_lidar_init``: ``repeats``
@@ -491,131 +680,42 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     cfg = resolve_auto_rules(frames, T_camera_lidar_init, config)
     auto_angle = config.neighbours_by == "auto" and cfg.neighbours_by == "angle"
     start = time.perf_counter()
-    hold = cfg.holds_translation
     clock = _SearchClock(progress, cfg.repeats, cfg.max_iterations)
-    (problem, clock_field), columns, first = _feature_problem(frames, T_camera_lidar_init, cfg, hold, clock)
-    centre = problem.centre
-    init_scores, _ = problem.frame_scores(centre[None])
-    runs, best_index = _seeded_runs(problem, cfg, hold, clock, first)
-    replaced: list[_Run] = []  # the 6-DoF runs a held estimate replaced: their spread is its deviation
-    if (cfg.translation == "auto" and not hold and not cfg.wide_box and cfg.repeats > 1
-            and _agreeing(runs, best_index, cfg) == 0):  # the translation may be what the runs disagree on
-        clock.runs += cfg.repeats
-        held_runs, held_best = _seeded_runs(problem, cfg, True, clock)
-        if (_agreeing(held_runs, held_best, cfg) > 0  # fewer unknowns, confirmed: preferred to an unconfirmed 6 DoF
-                and not _clearly_better(problem, runs[best_index], held_runs[held_best])):  # unless the scene says not
-            replaced, runs, best_index, hold = runs, held_runs, held_best, True
-    best_run = runs[best_index]
-    score, x_best, iterations = best_run.score, best_run.x, best_run.iterations
+    (problem, clock_field), columns, first = _feature_problem(frames, T_camera_lidar_init, cfg,
+                                                              cfg.holds_translation, clock)
+    init_scores, _ = problem.frame_scores(problem.centre[None])
+    searched = _searched(problem, cfg, cfg.holds_translation, clock, first)
     swarm_view = problem.search_view(cfg.seed)  # the first run's swarm frames bound the checks' cost on long logs
-    if cfg.polish and swarm_view is not problem.full:  # the runs were polished on their swarms' frames
-        refined = problem.polish_everywhere(x_best, hold, score)
-        score, x_best, iterations = refined.best_score, refined.best_x, iterations + refined.iterations
-    timing = _estimate_timing(problem, clock_field, x_best, hold, cfg)
-    if timing is not None:
-        score, x_best = timing.score, timing.x
-    profile = np.full(3, np.nan)
-    if not hold and cfg.profile_translation_m > 0:
-        profile = translation_profile(problem, x_best, cfg.profile_translation_m, cfg.profile_rotation_deg,
-                                      swarm_view)
+    estimate = _refined(problem, cfg, searched, clock_field, swarm_view)
     runtime = time.perf_counter() - start
-    final_scores, counts = problem.frame_scores(x_best[None])
-    if int(counts.sum()) < cfg.min_points:
-        raise ProcessingError(
-            f"the camera sees {int(counts.sum())} lidar points at the best pose in the search box "
-            f"(+-{cfg.search_deg} deg, +-{cfg.search_m} m around the initial guess); need {cfg.min_points}")
-    T_best = problem.T_camera_lidar(x_best)
-    if clock_field is not None:  # the mean ego-motion the searched extrinsic absorbed
-        shift = timing.shift if timing is not None else TimeShift()
-        T_best = T_best @ clock_field.extrinsic_correction(shift, clock_field.row_fractions(x_best))
-    rot_std = trans_std = float("nan")
-    if len(runs) > 1:
-        Ts = [run.T_camera_lidar for run in runs]
-        rot_std = float(np.sqrt(np.mean([rotation_error_deg(T, T_best) ** 2 for T in Ts])))
-        trans_std = float("nan") if hold else float(np.sqrt(np.mean([translation_error_m(T, T_best) ** 2
-                                                                    for T in Ts])))
-    agreeing = _agreeing(runs, best_index, cfg)
-    confirmed = len(runs) < 2 or agreeing > 0
-    weak = weak_axes(profile, cfg.weak_translation_ratio)
-    chance = {"gom": 0.5, "nmi": 1.0, "levinson": 0.0}[cfg.metric]
-    flat = _flat(problem, x_best, score, chance)
+    final_scores = _checked_points(problem, cfg, estimate.x)
+    T_best = _estimate_T(problem, estimate, clock_field)
+    rot_std, trans_std = _run_spread(searched, T_best)
+    flat = _flat(problem, estimate.x, estimate.score, {"gom": 0.5, "nmi": 1.0, "levinson": 0.0}[cfg.metric])
+    rings = _Rings(_finite_median(problem.ring_spacing_rad, np.degrees), _finite_median(problem.ring_slant_deg))
+    deviations, loose = _deviations(problem, cfg, searched, estimate, rings, clock_field, T_best, swarm_view)
+    reason = _suspect_reason(problem, cfg, searched, estimate, deviations, loose, rings, flat, auto_angle,
+                             len(frames))
     initial_score = float(init_scores.mean())
     moved = (rotation_error_deg(T_best, problem.T_init) > cfg.ok_rotation_deg
              or translation_error_m(T_best, problem.T_init) > cfg.ok_translation_m)
-    ring_deg, slant_deg = (_finite_median(problem.ring_spacing_rad, np.degrees),
-                           _finite_median(problem.ring_slant_deg))
-    range_m, off_axis = problem.typical_range_and_off_axis()
-    free = problem.free_parameters(hold)
-    aliases = (ring_alias_optima(problem, x_best, free, ring_deg, range_m, swarm_view)
-               if cfg.metric == "gom" and ring_deg > cfg.sparse_rings_above_deg else [])  # GOM: image bands
-    deviations = axis_deviations(problem, x_best, [run.x for i, run in enumerate(runs) if i != best_index],
-                                 np.linalg.norm([sampling_floor(ring_deg, problem.pixel_deg(), range_m, off_axis),
-                                                 _timing_floor(clock_field, timing, cfg, T_best),
-                                                 objective_floor()], axis=0),
-                                 free, aliases, [run.x for run in replaced],
-                                 confirmed=confirmed)
-    loose = _curvature_loosened(deviations, profile, cfg)
-    uncertain = _uncertain_axes(deviations.rotation_deg, deviations.translation_m, cfg)
-    reason = ""
-    edge = box_edge(x_best, problem.lower, problem.upper, cfg.box_edge_fraction, free)
-    near_edge = box_edge(x_best, problem.lower, problem.upper, cfg.box_edge_fraction, free,
-                         SIGNIFICANCE * np.concatenate([deviations.rotation_deg, deviations.translation_m]))
-    on_limit = problem.overlap_limited(x_best, cfg.box_edge_fraction) if cfg.min_overlap_fraction > 0 else []
-    if cfg.metric == "gom" and score < cfg.gom_suspect_below:
-        reason = (f"GOM {score:.3f} is below {cfg.gom_suspect_below}: the lidar's edges and the image's hardly line up "
-                  "anywhere in the search box; check that the topics see the same scene, the camera's intrinsics "
-                  "and the initial guess")
-    elif flat:
-        reason = ("flat optimum: turning the estimate 1 deg barely changes the score; " + _more_evidence(len(frames)))
-    elif cfg.metric == "gom" and slanted_sparse_rings(ring_deg, slant_deg, cfg):  # measured on GOM only
-        reason = (f"the lidar's rings lie {ring_deg:.2f} deg apart and cross the image slanted {slant_deg:.0f} deg "
-                  f"(sphere neighbours by angle{', auto' if auto_angle else ''}): rings this sparse and slanted leave "
-                  "the rotation uncertain by tenths of a degree or more; check the estimate against a reference "
-                  "before using it")
-    elif edge:
-        reason = (f"the estimate is at the edge of the search box ({'; '.join(edge)}): the best pose may lie "
-                  "outside it; check the initial guess or widen --search-deg / --search-m")
-    elif on_limit:
-        reason = (f"the estimate sits on the overlap limit ({'; '.join(on_limit)}): fewer lidar points in view "
-                  "would have scored higher; check the initial guess")
-    elif len(runs) == 1 and cfg.wide_box:
-        reason = (f"one seeded run in a wide search box (+-{cfg.search_deg:g} deg, +-{cfg.search_m:g} m) with no "
-                  "other run to confirm it: far optima lie in such a box; set calibration.repeats to 2 or more")
-    elif uncertain:
-        why = ("the seeded 6-DoF runs disagree, so the translation was held at the initial guess's; their spread "
-               "leaves the estimate" if replaced else "the estimate is")
-        unconfirmed = "" if confirmed else f", none of the {len(runs)} seeded runs confirms another"
-        sources = ("" if replaced else f"; {deviations.alike_runs} other seeded run(s) and {deviations.alike_aliases} "
-                   f"optima a few lidar rings away score as well{unconfirmed}")
-        if loose:
-            sources += f"; the score fixes the translation along {', '.join(loose)} loosely against the rotation"
-        reason = (f"{why} uncertain beyond {cfg.agree_rotation_deg:g} deg / {100 * cfg.agree_translation_m:g} cm "
-                  f"(2 sigma: {', '.join(uncertain)}{sources}): " + _more_evidence(len(frames)))
-    elif near_edge:
-        reason = (f"the search box's edge lies within twice the estimate's deviation ({'; '.join(near_edge)}): the "
-                  "truth may lie outside the box; check the initial guess or widen --search-deg / --search-m")
-    verdict: Verdict
-    if reason:
-        verdict = "suspect"
-    elif moved and score > initial_score:
-        verdict = "recalibrated"
-    else:
-        verdict = "ok"
+    verdict: Verdict = "suspect" if reason else ("recalibrated" if moved and estimate.score > initial_score else "ok")
     return CalibrationResult(
-        T_camera_lidar=T_best, T_camera_lidar_initial=problem.T_init.copy(), score=float(score),
-        initial_score=initial_score, frame_scores=final_scores[0], frame_initial_scores=init_scores[0],
+        T_camera_lidar=T_best, T_camera_lidar_initial=problem.T_init.copy(), score=float(estimate.score),
+        initial_score=initial_score, frame_scores=final_scores, frame_initial_scores=init_scores[0],
         frames_used=len(frames), points_used=list(problem.points_used), runtime_s=runtime,
-        iterations=iterations, evaluations=round(problem.evaluations), verdict=verdict, verdict_reason=reason,
-        flat=flat,
-        rotation_std_deg=rot_std, translation_std_m=trans_std, agreeing_repeats=agreeing,
-        focal_scale=float(x_best[6]) if x_best.size > 6 else 1.0, metric=cfg.metric,
+        iterations=estimate.iterations, evaluations=round(problem.evaluations), verdict=verdict,
+        verdict_reason=reason, flat=flat, rotation_std_deg=rot_std, translation_std_m=trans_std,
+        agreeing_repeats=_agreeing(searched.runs, searched.best, cfg),
+        focal_scale=float(estimate.x[6]) if estimate.x.size > 6 else 1.0, metric=cfg.metric,
         gradient_viewpoint=cfg.viewpoint, ring_smoothing_px=max(problem.ring_smoothing_px),
-        translation_held=hold, translation_profile=profile,
-        weak_translation_axes=weak, ring_spacing_deg=ring_deg,
-        sparse_rings=bool(ring_deg > cfg.sparse_rings_above_deg), ring_slant_deg=slant_deg,
-        std_rotation_deg=deviations.rotation_deg, std_translation_m=deviations.translation_m,
-        alike_runs=deviations.alike_runs, alike_aliases=deviations.alike_aliases, feature_columns=columns,
-        **_timing_fields(problem, timing, cfg))
+        translation_held=searched.hold, translation_profile=estimate.profile,
+        weak_translation_axes=weak_axes(estimate.profile, cfg.weak_translation_ratio),
+        ring_spacing_deg=rings.spacing_deg, sparse_rings=bool(rings.spacing_deg > cfg.sparse_rings_above_deg),
+        ring_slant_deg=rings.slant_deg, std_rotation_deg=deviations.rotation_deg,
+        std_translation_m=deviations.translation_m, alike_runs=deviations.alike_runs,
+        alike_aliases=deviations.alike_aliases, feature_columns=columns,
+        **_timing_fields(problem, estimate.timing, cfg))
 
 
 def _time_field(problem: CalibrationProblem) -> TimeShiftField | None:
