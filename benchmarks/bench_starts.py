@@ -87,6 +87,7 @@ MORE_RIGS: dict[str, dict[str, Any]] = {
     "open-64-fisheye": {"scene": "open", "beams": 64, "columns": 1024, "fisheye": True},
     "street-128-wide-angle": {"beams": 128, "columns": 1024, "wide_angle": True},
     "street-64-lidar-roll-20": {"beams": 64, "columns": 1024, "lidar_roll_deg": 20.0},
+    "street-32-lidar-roll-40": {"beams": 32, "columns": 1024, "lidar_roll_deg": 40.0},
     "street-64-15m-s": {"beams": 64, "columns": 1024, "speed_m_s": 15.0},
     "street-16-side-camera": {"beams": 16, "columns": 1800, "camera_yaw_deg": 90.0},
     "street-32-camera-roll-15": {"beams": 32, "columns": 1024, "camera_roll_deg": 15.0},
