@@ -93,14 +93,14 @@ class CalibrationResult:
         iterations: swarm iterations + polish steps of the returned run.
         evaluations: candidate poses scored over all repeats, as poses scored on every point of the frames they
             were scored on (a swarm's screening pass over a quarter of the points counts a quarter).
-        verdict: ``ok`` (initial guess confirmed), ``recalibrated`` or ``suspect`` (GOM below
-            ``gom_suspect_below``, a flat optimum, an estimate at the edge of the search box or on a
-            frame's overlap limit, a single run in a ``SolverConfig.wide_box``, which nothing confirms; or
-            twice a per-axis standard deviation (where no other seeded run agrees with the returned one, at
-            least the farthest run's distance along the axis),
-            ``std_rotation_deg`` / ``std_translation_m``, beyond ``agree_rotation_deg`` /
-            ``agree_translation_m``, which for a translation held where the 6-DoF runs disagreed,
-            ``SolverConfig.translation``, holds those runs' spread).
+        verdict: ``ok`` (initial guess confirmed), ``recalibrated`` or ``suspect`` (``_suspect_reason``: GOM
+            below ``gom_suspect_below``, a flat optimum, sparse rings slanted across the image, an estimate
+            at the edge of the search box or on a frame's overlap limit, a single run in a
+            ``SolverConfig.wide_box``, which nothing confirms; twice a per-axis standard deviation
+            (``std_rotation_deg`` / ``std_translation_m``; where no other seeded run agrees with the returned
+            one, at least the farthest run's distance along the axis; for a translation held where the 6-DoF
+            runs disagreed, ``SolverConfig.translation``, those runs' spread) beyond ``agree_rotation_deg`` /
+            ``agree_translation_m``; or the box's edge within twice those deviations).
         verdict_reason: why ``suspect`` (empty otherwise).
         flat: True when the optimum is not distinct from its neighbourhood.
         rotation_std_deg, translation_std_m: RMS deviation of the repeats from the returned estimate
