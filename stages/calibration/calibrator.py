@@ -485,13 +485,20 @@ def slanted_sparse_rings(ring_deg: float, slant_deg: float, config: SolverConfig
 
 @dataclass
 class _Searched:
-    """The seeded runs ``calibrate`` returns the best of (``best``), whether their translation was held, and the
-    6-DoF runs a held translation replaced (their spread is its deviation)."""
+    """The seeded runs ``calibrate`` returns the best of (``best``), whether their translation was held, the
+    6-DoF runs a held translation replaced (their spread is its deviation) and how many runs confirm the best
+    (``_agreeing``)."""
 
     runs: list[_Run]
     best: int
     hold: bool
     replaced: list[_Run]
+    agreeing: int
+
+    @property
+    def confirmed(self) -> bool:
+        """One run, or another seeded run within ``agree_rotation_deg`` / ``agree_translation_m`` of the best."""
+        return len(self.runs) < 2 or self.agreeing > 0
 
 
 def _searched(problem: CalibrationProblem, cfg: SolverConfig, hold: bool, clock: _SearchClock,
@@ -500,14 +507,16 @@ def _searched(problem: CalibrationProblem, cfg: SolverConfig, hold: bool, clock:
     runs with the translation held at the initial guess's, which replace them where they confirm one another
     and the best 6-DoF run does not score clearly higher (then the scene fixes the translation)."""
     runs, best = _seeded_runs(problem, cfg, hold, clock, first)
+    agreeing = _agreeing(runs, best, cfg)
     if (cfg.translation == "auto" and not hold and not cfg.wide_box and cfg.repeats > 1
-            and _agreeing(runs, best, cfg) == 0):  # the translation may be what the runs disagree on
+            and agreeing == 0):  # the translation may be what the runs disagree on
         clock.runs += cfg.repeats
         held_runs, held_best = _seeded_runs(problem, cfg, True, clock)
-        if (_agreeing(held_runs, held_best, cfg) > 0  # fewer unknowns, confirmed: preferred to an unconfirmed 6 DoF
+        held_agreeing = _agreeing(held_runs, held_best, cfg)
+        if (held_agreeing > 0  # fewer unknowns, confirmed: preferred to an unconfirmed 6 DoF
                 and not _clearly_better(problem, runs[best], held_runs[held_best])):  # unless the scene says not
-            return _Searched(held_runs, held_best, True, runs)
-    return _Searched(runs, best, hold, [])
+            return _Searched(held_runs, held_best, True, runs, held_agreeing)
+    return _Searched(runs, best, hold, [], agreeing)
 
 
 @dataclass
@@ -540,7 +549,7 @@ def _refined(problem: CalibrationProblem, cfg: SolverConfig, searched: _Searched
     return _Estimate(score, x, iterations, timing, profile)
 
 
-def _checked_points(problem: CalibrationProblem, cfg: SolverConfig, x: NDArray[np.float64]) -> NDArray[np.float64]:
+def _final_frame_scores(problem: CalibrationProblem, cfg: SolverConfig, x: NDArray[np.float64]) -> NDArray[np.float64]:
     """Per-frame scores (F,) at ``x``.
 
     Raises:
@@ -600,13 +609,8 @@ def _deviations(problem: CalibrationProblem, cfg: SolverConfig, searched: _Searc
                             _timing_floor(clock_field, estimate.timing, cfg, T_best), objective_floor()], axis=0)
     others = [run.x for i, run in enumerate(searched.runs) if i != searched.best]
     deviations = axis_deviations(problem, estimate.x, others, floor, free, aliases,
-                                 [run.x for run in searched.replaced], confirmed=_confirmed(searched, cfg))
+                                 [run.x for run in searched.replaced], confirmed=searched.confirmed)
     return deviations, _curvature_loosened(deviations, estimate.profile, cfg)
-
-
-def _confirmed(searched: _Searched, cfg: SolverConfig) -> bool:
-    """One run, or another seeded run within ``agree_rotation_deg`` / ``agree_translation_m`` of the best."""
-    return len(searched.runs) < 2 or _agreeing(searched.runs, searched.best, cfg) > 0
 
 
 def _suspect_reason(problem: CalibrationProblem, cfg: SolverConfig, searched: _Searched, estimate: _Estimate,
@@ -656,8 +660,7 @@ def _uncertain_reason(cfg: SolverConfig, searched: _Searched, deviations: AxisDe
     where they come from and what would narrow them."""
     why = ("the seeded 6-DoF runs disagree, so the translation was held at the initial guess's; their spread "
            "leaves the estimate" if searched.replaced else "the estimate is")
-    unconfirmed = ("" if _confirmed(searched, cfg)
-                   else f", none of the {len(searched.runs)} seeded runs confirms another")
+    unconfirmed = "" if searched.confirmed else f", none of the {len(searched.runs)} seeded runs confirms another"
     sources = ("" if searched.replaced else f"; {deviations.alike_runs} other seeded run(s) and "
                f"{deviations.alike_aliases} optima a few lidar rings away score as well{unconfirmed}")
     if loose:
@@ -688,7 +691,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     swarm_view = problem.search_view(cfg.seed)  # the first run's swarm frames bound the checks' cost on long logs
     estimate = _refined(problem, cfg, searched, clock_field, swarm_view)
     runtime = time.perf_counter() - start
-    final_scores = _checked_points(problem, cfg, estimate.x)
+    final_scores = _final_frame_scores(problem, cfg, estimate.x)
     T_best = _estimate_T(problem, estimate, clock_field)
     rot_std, trans_std = _run_spread(searched, T_best)
     flat = _flat(problem, estimate.x, estimate.score, {"gom": 0.5, "nmi": 1.0, "levinson": 0.0}[cfg.metric])
@@ -706,7 +709,7 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
         frames_used=len(frames), points_used=list(problem.points_used), runtime_s=runtime,
         iterations=estimate.iterations, evaluations=round(problem.evaluations), verdict=verdict,
         verdict_reason=reason, flat=flat, rotation_std_deg=rot_std, translation_std_m=trans_std,
-        agreeing_repeats=_agreeing(searched.runs, searched.best, cfg),
+        agreeing_repeats=searched.agreeing,
         focal_scale=float(estimate.x[6]) if estimate.x.size > 6 else 1.0, metric=cfg.metric,
         gradient_viewpoint=cfg.viewpoint, ring_smoothing_px=max(problem.ring_smoothing_px),
         translation_held=searched.hold, translation_profile=estimate.profile,
