@@ -178,8 +178,8 @@ def test_gradient_settings_follow_the_viewpoint() -> None:
     assert solver.neighbours_on("camera") == "angle"  # Levinson's depth jumps stay on the camera sphere
     camera = replace(solver, gradient_viewpoint="camera")
     assert (camera.viewpoint, camera.fit, camera.neighbours_on("camera")) == ("camera", "paper", "angle")
-    camera = replace(camera, neighbours_by="sampling", gradient_fit="lsq")
-    assert (camera.viewpoint, camera.fit, camera.neighbours_on("camera")) == ("camera", "lsq", "sampling")
+    camera = replace(camera, neighbours_by="sampling")
+    assert (camera.viewpoint, camera.fit, camera.neighbours_on("camera")) == ("camera", "paper", "sampling")
     with pytest.raises(ConfigError, match="neighbours_by"):
         replace(solver, neighbours_by="rings").validate()
     with pytest.raises(ConfigError, match="ring_smoothing"):

@@ -180,3 +180,18 @@ def test_second_channel_reuses_the_first_channels_neighbours(view: str) -> None:
         np.testing.assert_array_equal(camera_sphere_neighbours(pts, T, 8, "sampling"), own.neighbours)
     with pytest.raises(ProcessingError, match="do not match"):
         compute_sphere_gradients(pts, second, T, k=8, neighbours=own.neighbours[:, :4])
+
+
+def test_algorithm_1_matches_its_numpy_reference() -> None:
+    """The paper's fit (``fit="paper"``): g = sum_j dv_j dx_j / K and weight sum_j |dv_j| / K over the K sphere
+    neighbours, dx the angle step (radians) from neighbour to point."""
+    rng = np.random.default_rng(5)
+    pts = rng.normal(size=(400, 3)) + np.array([0.0, 0.0, 8.0])
+    values = rng.uniform(size=400)
+    got = compute_sphere_gradients(pts, values, np.eye(4), k=6, fit="paper")
+    uv = sphere_coordinates(pts)
+    d_uv = uv[:, None, :] - uv[got.neighbours]
+    d_v = values[:, None] - values[got.neighbours]
+    np.testing.assert_allclose(got.gx, (d_v * d_uv[..., 0]).mean(axis=1), atol=1e-12)
+    np.testing.assert_allclose(got.gy, (d_v * d_uv[..., 1]).mean(axis=1), atol=1e-12)
+    np.testing.assert_allclose(got.magnitude, np.abs(d_v).mean(axis=1), atol=1e-12)

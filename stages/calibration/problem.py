@@ -477,8 +477,7 @@ class CalibrationProblem:
                                          k=cfg.sphere_k, fit=cfg.fit, neighbours_by=cfg.neighbours_on("lidar"),
                                          neighbours=neighbours, polar_scale=polar_scale)
         else:
-            grads = compute_sphere_gradients(pts, feat, T_cam_lidar, k=cfg.sphere_k,
-                                             normalise=cfg.normalise_gradients, fit=cfg.fit,
+            grads = compute_sphere_gradients(pts, feat, T_cam_lidar, k=cfg.sphere_k, fit=cfg.fit,
                                              neighbours_by=cfg.neighbours_on("camera"), neighbours=neighbours,
                                              polar_scale=polar_scale)
         magnitude = grads.magnitude  # the paper's weight (Algorithm 1: mean absolute difference to the neighbours)

@@ -163,7 +163,7 @@ def camera_sphere_neighbours(points_xyz: NDArray[np.floating], T_camera_lidar: N
 
 def compute_sphere_gradients(points_xyz: NDArray[np.floating], values: NDArray[np.floating],
                              T_camera_lidar: NDArray[np.float64], k: int = 8,
-                             normalise: bool = False, fit: str = "paper",
+                             fit: str = "paper",
                              neighbours_by: str = "angle",
                              neighbours: NDArray[np.int64] | None = None,
                              polar_scale: float | None = None) -> LidarGradients:
@@ -174,7 +174,6 @@ def compute_sphere_gradients(points_xyz: NDArray[np.floating], values: NDArray[n
         values: (N,) feature (e.g. histogram-equalised range or intensity in [0, 1]).
         T_camera_lidar: 4x4 estimate of the extrinsic; the sphere is centred at that camera.
         k: neighbours per point (the paper uses 8).
-        normalise: use unit neighbour directions instead of raw angle differences (see kernel).
         fit: ``paper`` (Algorithm 1) or ``lsq`` (least-squares plane fit, ``sphere_gradient_lsq_kernel``).
         neighbours_by: ``angle`` (paper: nearest on the sphere) or ``sampling`` (polar angle scaled by
             ``sampling_aspect`` for the search, so sparse-ring lidars get neighbours across rings).
@@ -200,7 +199,7 @@ def compute_sphere_gradients(points_xyz: NDArray[np.floating], values: NDArray[n
     if fit == "lsq":
         gx, gy, mag = sphere_gradient_lsq_kernel(sphere_uv, vals, neighbours)
     else:
-        gx, gy, mag = sphere_gradient_kernel(sphere_uv, vals, neighbours, normalise)
+        gx, gy, mag = sphere_gradient_kernel(sphere_uv, vals, neighbours)
     return LidarGradients(gx, gy, mag, np.arctan2(gy, gx), sphere_uv, neighbours, scale)
 
 

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import njit
 
@@ -11,20 +9,18 @@ from fleetcal.pipeline.numba_flags import NJIT_FLAGS
 
 
 @njit(**NJIT_FLAGS)
-def sphere_gradient_kernel(sphere_uv: np.ndarray, values: np.ndarray, neighbours: np.ndarray,
-                           normalise: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def sphere_gradient_kernel(sphere_uv: np.ndarray, values: np.ndarray,
+                           neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Algorithm 1 of the paper for every point.
 
     Args:
         sphere_uv: (N, 2) sphere angles (azimuth, polar) in radians, aligned with image (u, v).
         values: (N,) lidar feature.
         neighbours: (N, K) int64 indices of the K nearest neighbours on the sphere (self excluded).
-        normalise: False: the paper's ``g += v * dx / K`` (dx in radians); True: ``dx`` is replaced
-            by the unit direction to the neighbour, so gradient direction does not depend on the
-            anisotropic spacing of rings and columns.
 
     Returns:
-        (gx, gy, magnitude) each (N,) float64; magnitude is the paper's ``sum |v| / K``.
+        (gx, gy, magnitude) each (N,) float64: the paper's ``g = sum dv dx / K`` (dx the angle step to the
+        neighbour, radians) and ``sum |dv| / K``.
     """
     n = sphere_uv.shape[0]
     k = neighbours.shape[1]
@@ -39,12 +35,6 @@ def sphere_gradient_kernel(sphere_uv: np.ndarray, values: np.ndarray, neighbours
             nb = neighbours[i, j]
             dx = sphere_uv[i, 0] - sphere_uv[nb, 0]
             dy = sphere_uv[i, 1] - sphere_uv[nb, 1]
-            if normalise:
-                d = math.sqrt(dx * dx + dy * dy)
-                if d <= 0.0:
-                    continue
-                dx /= d
-                dy /= d
             dv = values[i] - values[nb]
             sx += dv * dx / k
             sy += dv * dy / k
