@@ -34,6 +34,7 @@ from fleetcal.stages.calibration.calibrator import agreeing_repeats, box_edge, r
 from fleetcal.stages.calibration.frame import build_frame, default_blur_sigma_px
 from fleetcal.stages.calibration.metrics import GomScorer, camera_params
 from fleetcal.stages.calibration.problem import CalibrationProblem
+from fleetcal.stages.calibration.uncertainty import camera_delta
 from fleetcal.stages.image_gradients import ImageGradients, compute_image_gradients
 from fleetcal.stages.lidar_features import compute_lidar_feature
 
@@ -44,9 +45,9 @@ R_OPTICAL_LIDAR = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]]
 def per_axis_errors(T: NDArray[np.float64], T_true: NDArray[np.float64]) -> tuple[NDArray[np.float64],
                                                                                    NDArray[np.float64]]:
     """Rotation error (3,) deg (rotation vector) and translation error (3,) m of ``T`` against ``T_true``,
-    both in the camera frame (``T @ inv(T_true)``)."""
-    E = T @ np.linalg.inv(T_true)
-    return Rotation.from_matrix(E[:3, :3]).as_rotvec(degrees=True), E[:3, 3]
+    both in the camera frame, as the result's per-axis deviations measure them (``uncertainty.camera_delta``)."""
+    delta = camera_delta(T, T_true)
+    return delta[:3], delta[3:]
 
 
 def true_T_camera_lidar() -> NDArray[np.float64]:
