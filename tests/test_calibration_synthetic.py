@@ -342,6 +342,8 @@ def test_translation_the_scene_does_not_fix_is_held_when_the_runs_disagree_on_it
     assert np.max(2 * held.std_translation_m) > 0.15, held.std_translation_m
     np.testing.assert_allclose(camera_centre_lidar(held.T_camera_lidar), camera_centre_lidar(T_true), atol=1e-9)
     assert rotation_error_deg(held.T_camera_lidar, T_true) < 0.1
+    turn_from_start = np.abs(camera_delta(held.T_camera_lidar, T_init)[:3])  # about 1 deg: suspect reaches it
+    assert np.all(held.std_rotation_deg >= turn_from_start - 1e-12), (held.std_rotation_deg, turn_from_start)
 
 
 def test_translation_profile_names_the_components_a_far_scene_does_not_fix(frame: CalibrationFrame) -> None:
@@ -402,6 +404,9 @@ def test_start_outside_the_search_box_is_suspect(frame: CalibrationFrame) -> Non
     assert rotation_error_deg(result.T_camera_lidar, T_true) > 2.0  # the truth is out of reach
     assert result.verdict == "suspect"
     assert "edge of the search box" in result.verdict_reason
+    moved = np.abs(camera_delta(result.T_camera_lidar, T_init))  # up to the box's 2 deg / 0.2 m on each axis
+    deviations = np.concatenate([result.std_rotation_deg, result.std_translation_m])
+    assert np.all(deviations >= moved - 1e-12) and np.max(moved[:3]) > 1.0, (deviations, moved)
 
 
 def test_overlap_limit_is_reported_where_a_frame_projects_no_more_than_its_minimum(

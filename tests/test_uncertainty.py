@@ -6,7 +6,14 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from fleetcal.stages.calibration.uncertainty import camera_delta, curvature_deviation_m, sampling_floor, scores_alike
+from fleetcal.stages.calibration.uncertainty import (
+    AxisDeviations,
+    camera_delta,
+    curvature_deviation_m,
+    reaching_initial_guess,
+    sampling_floor,
+    scores_alike,
+)
 
 
 def test_a_difference_counts_only_beyond_two_standard_errors_over_the_bands() -> None:
@@ -55,6 +62,26 @@ def test_camera_delta_is_the_turn_and_shift_in_the_camera_axes() -> None:
     delta = camera_delta(T, T_ref)
     np.testing.assert_allclose(delta[:3], [0.0, 0.0, 1.0], atol=1e-9)
     np.testing.assert_allclose(delta[3:], T[:3, 3] - T_ref[:3, 3])
+
+
+def test_a_suspect_estimate_is_uncertain_up_to_its_initial_guess_on_every_axis() -> None:
+    """Estimate 1.5 deg about the camera's y and 0.3 m along its z from the initial guess: those two axes widen to
+    the distances, the others keep their deviations, and a translation the settings held stays NaN."""
+    T_init = np.eye(4)
+    T_init[:3, :3] = Rotation.from_euler("xyz", [-90, 0, -90], degrees=True).as_matrix()
+    T_init[:3, 3] = [0.05, -0.3, 0.1]
+    move = np.eye(4)
+    move[:3, :3] = Rotation.from_rotvec([0.0, 1.5, 0.0], degrees=True).as_matrix()
+    move[:3, 3] = [0.0, 0.0, 0.3]
+    T = move @ T_init
+    found = AxisDeviations(np.array([0.4, 0.2, 0.3]), np.array([0.05, 0.5, 0.02]), alike_runs=1)
+    wide = reaching_initial_guess(found, T, T_init)
+    shift = T[:3, 3] - T_init[:3, 3]
+    np.testing.assert_allclose(wide.rotation_deg, [0.4, 1.5, 0.3], atol=1e-9)
+    np.testing.assert_allclose(wide.translation_m, [max(0.05, abs(shift[0])), 0.5, max(0.02, abs(shift[2]))])
+    assert wide.alike_runs == 1
+    held = reaching_initial_guess(AxisDeviations(found.rotation_deg, np.full(3, np.nan), 0), T, T_init)
+    assert np.all(np.isnan(held.translation_m))
 
 
 def test_ring_alias_optima_are_polished_moves_along_the_lidar_axis_and_bound_the_deviation() -> None:

@@ -63,6 +63,7 @@ from fleetcal.stages.calibration.uncertainty import (
     band_scores,
     curvature_deviation_m,
     objective_floor,
+    reaching_initial_guess,
     ring_alias_optima,
     sampling_floor,
     scores_alike,
@@ -134,7 +135,8 @@ class CalibrationResult:
             objective's own bias, ``uncertainty.OBJECTIVE_BIAS_DEG``, for the rotation; a held translation's the
             spread of the 6-DoF runs it replaced); translation NaN where the settings held it (``translation =
             "hold"``). The verdict is ``suspect`` where twice a deviation exceeds ``agree_rotation_deg`` /
-            ``agree_translation_m``.
+            ``agree_translation_m``; a ``suspect`` estimate's deviations then reach its initial guess on every
+            axis (``uncertainty.reaching_initial_guess``).
         alike_runs: other seeded runs that score as well as the best.
         alike_aliases: optima one to three lidar rings away along the lidar's axis that score as well as the
             best (``uncertainty.ring_alias_optima``; probed on rings sparser than ``sparse_rings_above_deg``).
@@ -703,6 +705,8 @@ def calibrate(frames: list[CalibrationFrame], T_camera_lidar_init: Mat4,
     moved = (rotation_error_deg(T_best, problem.T_init) > cfg.ok_rotation_deg
              or translation_error_m(T_best, problem.T_init) > cfg.ok_translation_m)
     verdict: Verdict = "suspect" if reason else ("recalibrated" if moved and estimate.score > initial_score else "ok")
+    if reason:
+        deviations = reaching_initial_guess(deviations, T_best, problem.T_init)
     return CalibrationResult(
         T_camera_lidar=T_best, T_camera_lidar_initial=problem.T_init.copy(), score=float(estimate.score),
         initial_score=initial_score, frame_scores=final_scores, frame_initial_scores=init_scores[0],
