@@ -623,9 +623,6 @@ def _suspect_reason(problem: CalibrationProblem, cfg: SolverConfig, searched: _S
     overlap limit, one run in a wide box, deviations beyond the accuracy asked, the box's edge within twice
     the deviations."""
     x, free = estimate.x, problem.free_parameters(searched.hold)
-    edge = box_edge(x, problem.lower, problem.upper, cfg.box_edge_fraction, free)
-    on_limit = problem.overlap_limited(x, cfg.box_edge_fraction) if cfg.min_overlap_fraction > 0 else []
-    uncertain = _uncertain_axes(deviations.rotation_deg, deviations.translation_m, cfg)
     if cfg.metric == "gom" and estimate.score < cfg.gom_suspect_below:
         return (f"GOM {estimate.score:.3f} is below {cfg.gom_suspect_below}: the lidar's edges and the image's hardly "
                 "line up anywhere in the search box; check that the topics see the same scene, the camera's "
@@ -637,16 +634,16 @@ def _suspect_reason(problem: CalibrationProblem, cfg: SolverConfig, searched: _S
                 f"{rings.slant_deg:.0f} deg (sphere neighbours by angle{', auto' if auto_angle else ''}): rings this "
                 "sparse and slanted leave the rotation uncertain by tenths of a degree or more; check the estimate "
                 "against a reference before using it")
-    if edge:
+    if edge := box_edge(x, problem.lower, problem.upper, cfg.box_edge_fraction, free):
         return (f"the estimate is at the edge of the search box ({'; '.join(edge)}): the best pose may lie "
                 "outside it; check the initial guess or widen --search-deg / --search-m")
-    if on_limit:
+    if on_limit := (problem.overlap_limited(x, cfg.box_edge_fraction) if cfg.min_overlap_fraction > 0 else []):
         return (f"the estimate sits on the overlap limit ({'; '.join(on_limit)}): fewer lidar points in view "
                 "would have scored higher; check the initial guess")
     if len(searched.runs) == 1 and cfg.wide_box:
         return (f"one seeded run in a wide search box (+-{cfg.search_deg:g} deg, +-{cfg.search_m:g} m) with no "
                 "other run to confirm it: far optima lie in such a box; set calibration.repeats to 2 or more")
-    if uncertain:
+    if uncertain := _uncertain_axes(deviations.rotation_deg, deviations.translation_m, cfg):
         return _uncertain_reason(cfg, searched, deviations, loose, uncertain, frames_used)
     near_edge = box_edge(x, problem.lower, problem.upper, cfg.box_edge_fraction, free,
                          SIGNIFICANCE * np.concatenate([deviations.rotation_deg, deviations.translation_m]))
