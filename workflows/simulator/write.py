@@ -46,8 +46,8 @@ from fleetcal.workflows.simulator.lidar import (
     simulate_scan,
 )
 from fleetcal.workflows.simulator.motion import LoopMotion
-from fleetcal.workflows.simulator.raycast import build_grid
-from fleetcal.workflows.simulator.scene import SCENES, build_scene
+from fleetcal.workflows.simulator.raycast import TriangleGrid, build_grid
+from fleetcal.workflows.simulator.scene import SCENES, Scene, build_scene
 from fleetcal.workflows.simulator.truth import (
     BASE_FRAME,
     DRIFTS,
@@ -55,6 +55,7 @@ from fleetcal.workflows.simulator.truth import (
     LIDAR_TOPIC,
     MAX_CAMERAS,
     ODOM_FRAME,
+    Rig,
     build_rig,
     build_truth,
     camera_frame,
@@ -271,179 +272,180 @@ def camera_pose(
     return motion.T_world_base_many(row_times_s(first_row_s, readout_s, height)) @ T_base_camera
 
 
-def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet: bool = True) -> SimulationResult:
-    """Simulate ``opts`` and write the log at ``out`` (file; folder for ``ros2``) and its truth file."""
-    opts.validate()
-    started = time.monotonic()
-    out_path = Path(out)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    scene = build_scene(opts.scene, opts.seed)
-    grid = build_grid(scene.triangles)
-    motion = LoopMotion(scene.route, opts.speed)
-    rig = build_rig(opts.cameras, scene.lidar_height_m, opts.perturb_deg, opts.perturb_m, opts.seed,
-                    lidar_roll_deg=opts.lidar_roll_deg, camera_yaw_deg=opts.camera_yaw_deg,
-                    camera_roll_deg=opts.camera_roll_deg, drift=opts.drift)
-    lidar = LidarModel(
-        beams=opts.beams,
-        columns=opts.columns,
-        period_s=1.0 / opts.lidar_rate_hz,
-        max_range_m=opts.max_range_m,
-        seed=opts.seed,
-        pattern="rosette" if opts.lidar == "rosette" else "spinning",
-    )
-    make_model = (fisheye_camera if opts.fisheye else panorama_camera if opts.panorama
-                  else rectified_stereo_camera if opts.rectified else wide_angle_camera if opts.wide_angle
-                  else pinhole_camera)
-    cameras = [
-        SimCamera(make_model(opts.width, opts.height), spectral_mix=min(0.15 * i, 0.6)) for i in range(opts.cameras)
-    ]
-    scans, images, phases_ms = _event_times(opts)
-    profile: rm.Profile = "ros1" if opts.fmt == "ros1" else "ros2"
+Event = tuple[int, int, str, int, int]
+"""(log time ns, order, kind, index, sub) of one message to write; ``order`` breaks ties deterministically.
+Kinds: ``tf_static``; ``tf`` (index: the stamp, ns); ``lidar`` (index: the scan); ``camera`` (index: the camera,
+sub: its image)."""
 
+
+@dataclass
+class _Drive:
+    """What one simulation sees: the scene, the vehicle's motion, the rig, its sensors and their stamps (ns)."""
+
+    opts: SimulationOptions
+    scene: Scene
+    grid: TriangleGrid
+    motion: LoopMotion
+    rig: Rig
+    lidar: LidarModel
+    cameras: list[SimCamera]
+    scans: list[int]
+    images: list[list[int]]
+    phases_ms: list[float]
+
+    @classmethod
+    def of(cls, opts: SimulationOptions) -> _Drive:
+        scene = build_scene(opts.scene, opts.seed)
+        rig = build_rig(opts.cameras, scene.lidar_height_m, opts.perturb_deg, opts.perturb_m, opts.seed,
+                        lidar_roll_deg=opts.lidar_roll_deg, camera_yaw_deg=opts.camera_yaw_deg,
+                        camera_roll_deg=opts.camera_roll_deg, drift=opts.drift)
+        lidar = LidarModel(beams=opts.beams, columns=opts.columns, period_s=1.0 / opts.lidar_rate_hz,
+                           max_range_m=opts.max_range_m, seed=opts.seed,
+                           pattern="rosette" if opts.lidar == "rosette" else "spinning")
+        make_model = (fisheye_camera if opts.fisheye else panorama_camera if opts.panorama
+                      else rectified_stereo_camera if opts.rectified else wide_angle_camera if opts.wide_angle
+                      else pinhole_camera)
+        cameras = [SimCamera(make_model(opts.width, opts.height), spectral_mix=min(0.15 * i, 0.6))
+                   for i in range(opts.cameras)]
+        scans, images, phases_ms = _event_times(opts)
+        return cls(opts, scene, build_grid(scene.triangles), LoopMotion(scene.route, opts.speed), rig, lidar,
+                   cameras, scans, images, phases_ms)
+
+    @staticmethod
     def t_s(stamp_ns: int) -> float:
+        """Seconds since the first scan."""
         return (stamp_ns - START_NS) / 1e9
 
-    T_world_odom = motion.T_world_base(0.0)
-    T_odom_world = invert(T_world_odom)
-    T_world_lidar0 = T_world_odom @ rig.T_base_lidar
-    T_lidar0_world = invert(T_world_lidar0)
+    def events(self) -> list[Event]:
+        """Every message of the log, in log-time order."""
+        opts = self.opts
+        events: list[Event] = [(START_NS, 0, "tf_static", 0, 0)] if opts.tf_static else []
+        tf_stamps = set(range(START_NS, self.scans[-1] + round(1e9 / opts.lidar_rate_hz) + 1, TF_PERIOD_NS))
+        tf_stamps.update(self.scans)
+        for cam_stamps in self.images:
+            tf_stamps.update(cam_stamps)
+        if opts.odometry:
+            events += [(s + 1_000_000, 1, "tf", s, 0) for s in sorted(tf_stamps)]
+        scan_latency = round(1e9 / opts.lidar_rate_hz) + 2_000_000
+        events += [(s + scan_latency, 2, "lidar", k, 0) for k, s in enumerate(self.scans)]
+        for i, cam_stamps in enumerate(self.images):
+            events += [(s + 8_000_000, 3 + i, "camera", i, j) for j, s in enumerate(cam_stamps)]
+        return sorted(events)
 
-    # (log_time_ns, order, kind, index, sub) -- order breaks ties deterministically
-    events: list[tuple[int, int, str, int, int]] = [(START_NS, 0, "tf_static", 0, 0)] if opts.tf_static else []
-    tf_stamps = set(range(START_NS, scans[-1] + round(1e9 / opts.lidar_rate_hz) + 1, TF_PERIOD_NS))
-    tf_stamps.update(scans)
-    for cam_stamps in images:
-        tf_stamps.update(cam_stamps)
-    if opts.odometry:
-        events += [(s + 1_000_000, 1, "tf", s, 0) for s in sorted(tf_stamps)]
-    scan_latency = round(1e9 / opts.lidar_rate_hz) + 2_000_000
-    events += [(s + scan_latency, 2, "lidar", k, 0) for k, s in enumerate(scans)]
-    for i, cam_stamps in enumerate(images):
-        events += [(s + 8_000_000, 3 + i, "camera", i, j) for j, s in enumerate(cam_stamps)]
-    events.sort()
-
-    def scan_at(k: int) -> LidarScan:
-        rng = np.random.default_rng(np.random.SeedSequence([opts.seed, 0x11DA, k]))
-        if opts.deskew:
-            T = motion.T_world_base(t_s(scans[k])) @ rig.T_base_lidar
+    def scan(self, k: int) -> LidarScan:
+        """Scan ``k``, cast from the pose at its stamp (de-skewed) or each column's firing time."""
+        rng = np.random.default_rng(np.random.SeedSequence([self.opts.seed, 0x11DA, k]))
+        start_s = self.t_s(self.scans[k])
+        if self.opts.deskew:
+            T = self.motion.T_world_base(start_s) @ self.rig.T_base_lidar
         else:
-            T = motion.T_world_base_many(t_s(scans[k]) + lidar.column_times_s()) @ rig.T_base_lidar
-        return simulate_scan(scene, grid, lidar, T, rng, scan_start_s=t_s(scans[k]))
+            T = self.motion.T_world_base_many(start_s + self.lidar.column_times_s()) @ self.rig.T_base_lidar
+        return simulate_scan(self.scene, self.grid, self.lidar, T, rng, scan_start_s=start_s)
 
-    def render_job(index: int, sub: int) -> NDArray[np.uint8]:
-        exposed_s = t_s(images[index][sub]) - opts.time_offset_s
-        T_world_cam = camera_pose(motion, rig.T_base_cameras[index], exposed_s, opts.readout_s, opts.height)
-        rng = np.random.default_rng(np.random.SeedSequence([opts.seed, 0xC0, index, sub]))
+    def image(self, index: int, sub: int) -> NDArray[np.uint8]:
+        """Image ``sub`` of camera ``index``, exposed at its stamp less the camera clock's offset; its own seeded
+        noise."""
+        exposed_s = self.t_s(self.images[index][sub]) - self.opts.time_offset_s
+        T_world_cam = camera_pose(self.motion, self.rig.T_base_cameras[index], exposed_s, self.opts.readout_s,
+                                  self.opts.height)
+        rng = np.random.default_rng(np.random.SeedSequence([self.opts.seed, 0xC0, index, sub]))
         exposure = 1.0 + 0.05 * np.sin(0.7 * exposed_s + index)
-        return render(scene, grid, cameras[index], T_world_cam, rng, exposure_scale=exposure)
+        return render(self.scene, self.grid, self.cameras[index], T_world_cam, rng, exposure_scale=exposure)
 
-    # camera images are rendered one or two events ahead on a helper thread (the kernels release the GIL),
-    # so rendering overlaps message building and compression; each image has its own seeded noise
-    camera_jobs = [(index, sub) for _, _, kind, index, sub in events if kind == "camera"]
-    pending: dict[int, Future[NDArray[np.uint8]]] = {}
-    next_job = 0
+    def T_map_lidar(self) -> NDArray[np.float64]:
+        """(S, 4, 4) the lidar's pose at each scan stamp in the first scan's lidar frame."""
+        T_lidar0_world = invert(self.motion.T_world_base(0.0) @ self.rig.T_base_lidar)
+        return np.stack([T_lidar0_world @ self.motion.T_world_base(self.t_s(s)) @ self.rig.T_base_lidar
+                         for s in self.scans])
 
-    def next_image(index: int, sub: int) -> NDArray[np.uint8]:
-        nonlocal next_job
-        if camera_jobs[next_job] != (index, sub):
-            raise ProcessingError(f"camera event {(index, sub)} out of order (expected {camera_jobs[next_job]})")
-        for q in range(next_job, min(next_job + PREFETCH_IMAGES, len(camera_jobs))):
-            if q not in pending:
-                pending[q] = prefetch.submit(render_job, *camera_jobs[q])
-        next_job += 1
-        return pending.pop(next_job - 1).result()
 
-    n_messages = 0
-    n_images = 0
-    progress = Progress(len(scans) + sum(map(len, images)), desc="simulate", quiet=quiet)
-    with (
-        ThreadPoolExecutor(max_workers=1, thread_name_prefix="fleetcal-render") as prefetch,
-        LogWriter(out_path, opts.fmt) as writer,
-    ):
-        for log_ns, _, kind, index, sub in events:
-            if kind == "tf_static":
-                transforms = [(START_NS, BASE_FRAME, LIDAR_FRAME, rig.T_base_lidar)]
-                transforms += [
-                    (START_NS, LIDAR_FRAME, camera_frame(i), invert(T)) for i, T in enumerate(rig.T_camera_lidar_in_log)
-                ]
-                writer.write("/tf_static", "tf2_msgs/msg/TFMessage", log_ns, rm.tf_message(transforms, profile))
-            elif kind == "tf":
-                T_odom_base = T_odom_world @ motion.T_world_base(t_s(index))
-                msg = rm.tf_message([(index, ODOM_FRAME, BASE_FRAME, T_odom_base)], profile)
-                writer.write("/tf", "tf2_msgs/msg/TFMessage", log_ns, msg)
-            elif kind == "lidar":
-                scan = scan_at(index)
-                if opts.organized:
-                    B, C = scan.valid.shape
-                    channels: dict[str, NDArray[Any]] = {
-                        "intensity": np.nan_to_num(scan.intensity.ravel(), nan=0.0),
-                        "ring": scan.ring.ravel(),
-                        "time": scan.time_s.ravel(),
-                    }
-                    msg = rm.pointcloud2(
-                        scans[index],
-                        LIDAR_FRAME,
-                        scan.points_xyz.reshape(-1, 3),
-                        channels,
-                        organized_shape=(B, C),
-                        profile=profile,
-                    )
-                else:
-                    points, chans = scan.unorganized()
-                    msg = rm.pointcloud2(scans[index], LIDAR_FRAME, points, chans, profile=profile)
-                writer.write(LIDAR_TOPIC, "sensor_msgs/msg/PointCloud2", log_ns, msg)
-                progress.update()
-            else:
-                stamp = images[index][sub]
-                cam = cameras[index]
-                img = next_image(index, sub)
-                image_topic, info_topic = camera_topics(index, opts.compressed, opts.rectified)
-                frame = camera_frame(index)
-                writer.write(
-                    info_topic,
-                    "sensor_msgs/msg/CameraInfo",
-                    log_ns - 1000,
-                    rm.camera_info(stamp, frame, cam.model, profile),
-                )
-                if opts.compressed:
-                    msg = rm.compressed_image(stamp, frame, img, "jpeg", 90, profile)
-                    writer.write(image_topic, "sensor_msgs/msg/CompressedImage", log_ns, msg)
-                else:
-                    writer.write(
-                        image_topic,
-                        "sensor_msgs/msg/Image",
-                        log_ns,
-                        rm.image(stamp, frame, img, "rgb8", profile),
-                    )
-                n_messages += 1
-                n_images += 1
-                progress.update()
-            n_messages += 1
-    progress.close()
+class _ImagesAhead:
+    """Camera images rendered one or two events ahead on a helper thread (the kernels release the GIL), so
+    rendering overlaps message building and compression."""
 
-    T_map_lidar = np.stack([T_lidar0_world @ motion.T_world_base(t_s(s)) @ rig.T_base_lidar for s in scans])
-    extra = {
+    def __init__(self, drive: _Drive, events: list[Event], pool: ThreadPoolExecutor) -> None:
+        self.drive, self.pool = drive, pool
+        self.jobs = [(index, sub) for _, _, kind, index, sub in events if kind == "camera"]
+        self.pending: dict[int, Future[NDArray[np.uint8]]] = {}
+        self.next_job = 0
+
+    def next(self, index: int, sub: int) -> NDArray[np.uint8]:
+        if self.jobs[self.next_job] != (index, sub):
+            raise ProcessingError(f"camera event {(index, sub)} out of order (expected {self.jobs[self.next_job]})")
+        for q in range(self.next_job, min(self.next_job + PREFETCH_IMAGES, len(self.jobs))):
+            if q not in self.pending:
+                self.pending[q] = self.pool.submit(self.drive.image, *self.jobs[q])
+        self.next_job += 1
+        return self.pending.pop(self.next_job - 1).result()
+
+
+def _scan_message(drive: _Drive, index: int, profile: rm.Profile) -> Any:
+    """Scan ``index`` as a PointCloud2 (organised B x C with ``organized``)."""
+    scan = drive.scan(index)
+    if not drive.opts.organized:
+        points, chans = scan.unorganized()
+        return rm.pointcloud2(drive.scans[index], LIDAR_FRAME, points, chans, profile=profile)
+    channels: dict[str, NDArray[Any]] = {"intensity": np.nan_to_num(scan.intensity.ravel(), nan=0.0),
+                                         "ring": scan.ring.ravel(), "time": scan.time_s.ravel()}
+    return rm.pointcloud2(drive.scans[index], LIDAR_FRAME, scan.points_xyz.reshape(-1, 3), channels,
+                          organized_shape=scan.valid.shape, profile=profile)
+
+
+def _write_camera(writer: LogWriter, drive: _Drive, log_ns: int, index: int, sub: int, image: NDArray[np.uint8],
+                  profile: rm.Profile) -> None:
+    """Image ``sub`` of camera ``index`` and its CameraInfo (1 us before it)."""
+    opts, stamp, frame = drive.opts, drive.images[index][sub], camera_frame(index)
+    image_topic, info_topic = camera_topics(index, opts.compressed, opts.rectified)
+    writer.write(info_topic, "sensor_msgs/msg/CameraInfo", log_ns - 1000,
+                 rm.camera_info(stamp, frame, drive.cameras[index].model, profile))
+    if opts.compressed:
+        writer.write(image_topic, "sensor_msgs/msg/CompressedImage", log_ns,
+                     rm.compressed_image(stamp, frame, image, "jpeg", 90, profile))
+    else:
+        writer.write(image_topic, "sensor_msgs/msg/Image", log_ns, rm.image(stamp, frame, image, "rgb8", profile))
+
+
+def _write_events(writer: LogWriter, drive: _Drive, events: list[Event], progress: Progress,
+                  pool: ThreadPoolExecutor) -> tuple[int, int]:
+    """Write every event; (messages, camera images) written."""
+    profile: rm.Profile = "ros1" if drive.opts.fmt == "ros1" else "ros2"
+    T_odom_world = invert(drive.motion.T_world_base(0.0))
+    ahead = _ImagesAhead(drive, events, pool)
+    n_messages = n_images = 0
+    for log_ns, _, kind, index, sub in events:
+        if kind == "tf_static":
+            transforms = [(START_NS, BASE_FRAME, LIDAR_FRAME, drive.rig.T_base_lidar)]
+            transforms += [(START_NS, LIDAR_FRAME, camera_frame(i), invert(T))
+                           for i, T in enumerate(drive.rig.T_camera_lidar_in_log)]
+            writer.write("/tf_static", "tf2_msgs/msg/TFMessage", log_ns, rm.tf_message(transforms, profile))
+        elif kind == "tf":
+            T_odom_base = T_odom_world @ drive.motion.T_world_base(drive.t_s(index))
+            writer.write("/tf", "tf2_msgs/msg/TFMessage", log_ns,
+                         rm.tf_message([(index, ODOM_FRAME, BASE_FRAME, T_odom_base)], profile))
+        elif kind == "lidar":
+            writer.write(LIDAR_TOPIC, "sensor_msgs/msg/PointCloud2", log_ns, _scan_message(drive, index, profile))
+            progress.update()
+        else:
+            _write_camera(writer, drive, log_ns, index, sub, ahead.next(index, sub), profile)
+            n_messages += 1  # its CameraInfo
+            n_images += 1
+            progress.update()
+        n_messages += 1
+    return n_messages, n_images
+
+
+def _truth_extra(drive: _Drive) -> dict[str, Any]:
+    """What the truth file says of the drive beyond the rig and the stamps."""
+    opts = drive.opts
+    return {
         "frames": opts.frames,
-        "lidar": {
-            "pattern": opts.lidar,
-            "roll_deg": opts.lidar_roll_deg,
-            "beams": opts.beams,
-            "columns": opts.columns,
-            "organized": opts.organized,
-            "deskewed": opts.deskew,
-            "rate_hz": opts.lidar_rate_hz,
-            "max_range_m": opts.max_range_m,
-        },
-        "cameras": [
-            {
-                "camera_topic": camera_topics(i, opts.compressed, opts.rectified)[0],
-                "camera_info_topic": camera_topics(i, opts.compressed, opts.rectified)[1],
-                "phase_ms": phases_ms[i],
-                "model": cameras[i].model.distortion_model,
-                "spectral_mix": cameras[i].spectral_mix,
-            }
-            for i in range(opts.cameras)
-        ],
+        "lidar": {"pattern": opts.lidar, "roll_deg": opts.lidar_roll_deg, "beams": opts.beams,
+                  "columns": opts.columns, "organized": opts.organized, "deskewed": opts.deskew,
+                  "rate_hz": opts.lidar_rate_hz, "max_range_m": opts.max_range_m},
+        "cameras": [{"camera_topic": camera_topics(i, opts.compressed, opts.rectified)[0],
+                     "camera_info_topic": camera_topics(i, opts.compressed, opts.rectified)[1],
+                     "phase_ms": drive.phases_ms[i], "model": drive.cameras[i].model.distortion_model,
+                     "spectral_mix": drive.cameras[i].spectral_mix} for i in range(opts.cameras)],
         "speed_m_s": opts.speed,
         "note": "T_camera_lidar is exact; T_camera_lidar_in_log is it turned by perturb_deg about a random "
         "axis and moved by perturb_m in a random direction (drift 'lidar': the lidar's mount is, once for all "
@@ -452,33 +454,31 @@ def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet:
         "perturb_deg": opts.perturb_deg,
         "perturb_m": opts.perturb_m,
     }
-    truth = build_truth(
-        rig=rig,
-        compressed=opts.compressed,
-        rectified=opts.rectified,
-        scan_stamps_ns=scans,
-        T_map_lidar=T_map_lidar,
-        scene=opts.scene,
-        seed=opts.seed,
-        fmt=opts.fmt,
-        extra=extra,
-        time_offset_s=opts.time_offset_s,
-        readout_s=opts.readout_s,
-    )
+
+
+def simulate_log(out: str | os.PathLike[str], opts: SimulationOptions, *, quiet: bool = True) -> SimulationResult:
+    """Simulate ``opts`` and write the log at ``out`` (file; folder for ``ros2``) and its truth file."""
+    opts.validate()
+    started = time.monotonic()
+    out_path = Path(out)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    drive = _Drive.of(opts)
+    events = drive.events()
+    progress = Progress(len(drive.scans) + sum(map(len, drive.images)), desc="simulate", quiet=quiet)
+    with (
+        ThreadPoolExecutor(max_workers=1, thread_name_prefix="fleetcal-render") as pool,
+        LogWriter(out_path, opts.fmt) as writer,
+    ):
+        n_messages, n_images = _write_events(writer, drive, events, progress, pool)
+    progress.close()
+    truth = build_truth(rig=drive.rig, compressed=opts.compressed, rectified=opts.rectified,
+                        scan_stamps_ns=drive.scans, T_map_lidar=drive.T_map_lidar(), scene=opts.scene,
+                        seed=opts.seed, fmt=opts.fmt, extra=_truth_extra(drive), time_offset_s=opts.time_offset_s,
+                        readout_s=opts.readout_s)
     truth_path = write_truth(truth_path_for(out_path), truth)
-    duration_s = (scans[-1] - START_NS) / 1e9
-    return SimulationResult(
-        log_path=str(out_path),
-        truth_path=str(truth_path),
-        format=opts.fmt,
-        scene=opts.scene,
-        seed=opts.seed,
-        lidar_scans=len(scans),
-        camera_images=n_images,
-        messages=n_messages,
-        duration_s=duration_s,
-        distance_m=opts.speed * duration_s,
-        runtime_s=time.monotonic() - started,
-        lidar_topic=LIDAR_TOPIC,
-        camera_topics=[camera_topics(i, opts.compressed, opts.rectified)[0] for i in range(opts.cameras)],
-    )
+    duration_s = (drive.scans[-1] - START_NS) / 1e9
+    topics = [camera_topics(i, opts.compressed, opts.rectified)[0] for i in range(opts.cameras)]
+    return SimulationResult(log_path=str(out_path), truth_path=str(truth_path), format=opts.fmt, scene=opts.scene,
+                            seed=opts.seed, lidar_scans=len(drive.scans), camera_images=n_images,
+                            messages=n_messages, duration_s=duration_s, distance_m=opts.speed * duration_s,
+                            runtime_s=time.monotonic() - started, lidar_topic=LIDAR_TOPIC, camera_topics=topics)
