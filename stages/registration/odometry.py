@@ -403,92 +403,131 @@ def run_odometry(
         raise ConfigError(f"first_motion_max_m must be >= 0, got {first_motion_max_m}")
     coarse = (dataclasses.replace(config, max_correspondence_distance_m=first_motion_max_m)
               if initial_motion is None and first_motion_max_m > config.max_correspondence_distance_m else None)
-    local_map = LocalMap(config, local_map_keyframes) if mode == "scan_to_map" else None
-    skew = _Deskew(deskew)
-    steps: list[OdometryStep] = []
-    previous: PointSet | None = None
-    first_scan: tuple[PointSet | LidarFrame, PointSet] | None = None
-    T_map_prev = np.eye(4)
-    velocity = np.eye(4)
-
-    def registered(source: PointSet, guess: NDArray[np.float64], settings: RegistrationConfig = config
-                   ) -> tuple[Any, NDArray[np.float64], NDArray[np.float64]]:
-        """Registration of ``source`` from the guess (motion since the previous scan): the result, the map
-        pose and the motion since the previous scan."""
-        assert previous is not None
-        if local_map is not None:
-            result = register(source, local_map.target(), T_map_prev @ guess, settings)
-            T_map = result.T_target_source if result.n_correspondences > 0 else T_map_prev @ guess
-        else:
-            result = register(source, previous, guess, settings)
-            T_map = T_map_prev @ (result.T_target_source if result.n_correspondences > 0 else guess)
-        T_map = _orthonormalize(T_map)
-        return result, T_map, _orthonormalize(invert(T_map_prev) @ T_map)
-
-    def registered_deskewed(scan: PointSet, motion: NDArray[np.float64], interval_s: float
-                            ) -> tuple[Any, NDArray[np.float64], NDArray[np.float64]]:
-        """``registered`` of ``scan`` de-skewed with ``motion`` (where it can be), from ``motion``."""
-        return registered(skew.apply(scan, skew.twist(scan, motion, interval_s)), motion)
-
+    run = _Odometry(config, coarse, initial_motion, voxel_map, _Deskew(deskew),
+                    LocalMap(config, local_map_keyframes) if mode == "scan_to_map" else None,
+                    local_map_keyframes, (keyframe_distance_m, keyframe_rotation_deg))
     for index, scan in enumerate(scans):
-        raw = _as_pointset(scan, config)
-        twist = None
-        if previous is None:
-            T_map_curr = np.eye(4)
-            current = raw
-            step = OdometryStep(index, raw.stamp_ns, T_map_curr, np.eye(4), 1.0, 0.0, 0, True, False,
-                                n_points=raw.n_points, dropped_points=raw.dropped_points)  # fmt: skip
-            if local_map is not None:
-                local_map.add(current, T_map_curr)
+        run.add(index, scan)
+    return run.finish()
+
+
+Motion = Sequence[NDArray[np.float64]] | Callable[[int], NDArray[np.float64] | None] | None
+"""External odometry for ``run_odometry``: a pose per scan, a function of the stamp, or none."""
+Registered = tuple[Any, NDArray[np.float64], NDArray[np.float64]]
+"""A registration's result, the map pose it gives and the motion since the previous scan."""
+
+
+class _Odometry:
+    """One odometry run's state: the previous scan and its map pose, the motion guess, the local map, and the
+    first scan while it waits for the first motion to be de-skewed with."""
+
+    def __init__(self, config: RegistrationConfig, coarse: RegistrationConfig | None, initial_motion: Motion,
+                 voxel_map: VoxelMap | None, skew: _Deskew, local_map: LocalMap | None, keyframes: int,
+                 keyframe_step: tuple[float, float]) -> None:
+        self.config, self.coarse, self.initial_motion = config, coarse, initial_motion
+        self.voxel_map, self.skew, self.local_map = voxel_map, skew, local_map
+        self.keyframes, self.keyframe_step = keyframes, keyframe_step
+        self.steps: list[OdometryStep] = []
+        self.previous: PointSet | None = None
+        self.first_scan: tuple[PointSet | LidarFrame, PointSet] | None = None
+        self.T_map_prev = np.eye(4)
+        self.velocity = np.eye(4)
+
+    def registered(self, source: PointSet, guess: NDArray[np.float64],
+                   settings: RegistrationConfig | None = None) -> Registered:
+        """Registration of ``source`` from the guess (motion since the previous scan)."""
+        settings = self.config if settings is None else settings
+        assert self.previous is not None
+        if self.local_map is not None:
+            result = register(source, self.local_map.target(), self.T_map_prev @ guess, settings)
+            T_map = result.T_target_source if result.n_correspondences > 0 else self.T_map_prev @ guess
         else:
-            guess = _external_motion(initial_motion, index, previous.stamp_ns, raw.stamp_ns)
-            guess = velocity if guess is None else guess
-            interval_s = (raw.stamp_ns - previous.stamp_ns) * 1e-9
-            if coarse is not None and index == 1:
-                _, _, guess = registered(raw, guess, coarse)
-            result, T_map_curr, T_prev_curr = registered_deskewed(raw, guess, interval_s)
-            if skew.twist(raw, T_prev_curr, interval_s) is not None:  # again, de-skewed by the estimate
-                result, T_map_curr, T_prev_curr = registered_deskewed(raw, T_prev_curr, interval_s)
-            if first_scan is not None:
-                # the first scan, de-skewed with the first motion estimate, replaces its skewed self
-                first_twist = skew.twist(first_scan[1], T_prev_curr, interval_s)
-                if first_twist is not None:
-                    previous = deskew_pointset(first_scan[1], first_twist)
-                    if local_map is not None:
-                        local_map = LocalMap(config, local_map_keyframes)
-                        local_map.add(previous, T_map_prev)
-                    steps[0].deskewed = True
-                    result, T_map_curr, T_prev_curr = registered_deskewed(raw, T_prev_curr, interval_s)
-                if voxel_map is not None:
-                    points, channels = _map_points(first_scan[0], first_scan[1], first_twist)
-                    voxel_map.insert(apply(T_map_prev, points), channels)
-                first_scan = None
-            twist = skew.twist(raw, T_prev_curr, interval_s)
-            current = skew.apply(raw, twist)
-            velocity = T_prev_curr
-            step = OdometryStep(index, raw.stamp_ns, T_map_curr, T_prev_curr, result.fitness, result.rmse_m,
-                                result.iterations, result.converged, result.degenerate,
-                                result.hessian_eigenvalues, raw.n_points, raw.dropped_points,
-                                deskewed=twist is not None)  # fmt: skip
-            if local_map is not None and result.converged and local_map.T_map_last_keyframe is not None:
-                last = local_map.T_map_last_keyframe
-                if (
-                    translation_error_m(last, T_map_curr) >= keyframe_distance_m
-                    or rotation_error_deg(last, T_map_curr) >= keyframe_rotation_deg
-                ):
-                    local_map.add(current, T_map_curr)
-        steps.append(step)
-        if index == 0 and skew.enabled and raw.times_s is not None:
-            first_scan = (scan, raw)  # de-skewed (and mapped) once the first motion is known
-        elif voxel_map is not None:
+            result = register(source, self.previous, guess, settings)
+            T_map = self.T_map_prev @ (result.T_target_source if result.n_correspondences > 0 else guess)
+        T_map = _orthonormalize(T_map)
+        return result, T_map, _orthonormalize(invert(self.T_map_prev) @ T_map)
+
+    def registered_deskewed(self, scan: PointSet, motion: NDArray[np.float64], interval_s: float) -> Registered:
+        """``registered`` of ``scan`` de-skewed with ``motion`` (where it can be), from ``motion``."""
+        return self.registered(self.skew.apply(scan, self.skew.twist(scan, motion, interval_s)), motion)
+
+    def add(self, index: int, scan: PointSet | LidarFrame) -> None:
+        """Register scan ``index``, record its step and put it into the maps."""
+        raw = _as_pointset(scan, self.config)
+        if self.previous is None:
+            T_map_curr, current, twist = np.eye(4), raw, None
+            self.steps.append(OdometryStep(index, raw.stamp_ns, T_map_curr, np.eye(4), 1.0, 0.0, 0, True, False,
+                                           n_points=raw.n_points, dropped_points=raw.dropped_points))
+            if self.local_map is not None:
+                self.local_map.add(current, T_map_curr)
+        else:
+            T_map_curr, current, twist = self._follow(index, raw)
+        if index == 0 and self.skew.enabled and raw.times_s is not None:
+            self.first_scan = (scan, raw)  # de-skewed (and mapped) once the first motion is known
+        elif self.voxel_map is not None:
             points, channels = _map_points(scan, current, twist)
-            voxel_map.insert(apply(T_map_curr, points), channels)
-        previous = current
-        T_map_prev = T_map_curr
-    if first_scan is not None and voxel_map is not None:
-        points, channels = _map_points(first_scan[0], first_scan[1], None)
-        voxel_map.insert(apply(T_map_prev, points), channels)
-    return steps
+            self.voxel_map.insert(apply(T_map_curr, points), channels)
+        self.previous = current
+        self.T_map_prev = T_map_curr
+
+    def _follow(self, index: int, raw: PointSet) -> tuple[NDArray[np.float64], PointSet, NDArray[np.float64] | None]:
+        """A scan after the first: registered (de-skewed by the guess, then by the estimate), its step recorded;
+        its map pose, the scan as it enters the maps and its de-skew twist."""
+        assert self.previous is not None
+        guess = _external_motion(self.initial_motion, index, self.previous.stamp_ns, raw.stamp_ns)
+        guess = self.velocity if guess is None else guess
+        interval_s = (raw.stamp_ns - self.previous.stamp_ns) * 1e-9
+        if self.coarse is not None and index == 1:
+            _, _, guess = self.registered(raw, guess, self.coarse)
+        result, T_map_curr, T_prev_curr = self.registered_deskewed(raw, guess, interval_s)
+        if self.skew.twist(raw, T_prev_curr, interval_s) is not None:  # again, de-skewed by the estimate
+            result, T_map_curr, T_prev_curr = self.registered_deskewed(raw, T_prev_curr, interval_s)
+        if self.first_scan is not None:
+            result, T_map_curr, T_prev_curr = self._first_scan_deskewed(raw, (result, T_map_curr, T_prev_curr),
+                                                                        interval_s)
+        twist = self.skew.twist(raw, T_prev_curr, interval_s)
+        current = self.skew.apply(raw, twist)
+        self.velocity = T_prev_curr
+        self.steps.append(OdometryStep(index, raw.stamp_ns, T_map_curr, T_prev_curr, result.fitness, result.rmse_m,
+                                       result.iterations, result.converged, result.degenerate,
+                                       result.hessian_eigenvalues, raw.n_points, raw.dropped_points,
+                                       deskewed=twist is not None))
+        if self.local_map is not None and result.converged and self._is_keyframe(T_map_curr):
+            self.local_map.add(current, T_map_curr)
+        return T_map_curr, current, twist
+
+    def _first_scan_deskewed(self, raw: PointSet, registered: Registered, interval_s: float) -> Registered:
+        """The first scan, de-skewed with the first motion estimate, replaces its skewed self (and the second
+        scan is registered again against it); it enters the voxel map. ``registered``: the second scan's."""
+        assert self.first_scan is not None
+        first_twist = self.skew.twist(self.first_scan[1], registered[2], interval_s)
+        if first_twist is not None:
+            self.previous = deskew_pointset(self.first_scan[1], first_twist)
+            if self.local_map is not None:
+                self.local_map = LocalMap(self.config, self.keyframes)
+                self.local_map.add(self.previous, self.T_map_prev)
+            self.steps[0].deskewed = True
+            registered = self.registered_deskewed(raw, registered[2], interval_s)
+        if self.voxel_map is not None:
+            points, channels = _map_points(self.first_scan[0], self.first_scan[1], first_twist)
+            self.voxel_map.insert(apply(self.T_map_prev, points), channels)
+        self.first_scan = None
+        return registered
+
+    def _is_keyframe(self, T_map_curr: NDArray[np.float64]) -> bool:
+        """The scan moved far enough from the last keyframe to make a new one."""
+        assert self.local_map is not None
+        last = self.local_map.T_map_last_keyframe
+        distance_m, rotation_deg = self.keyframe_step
+        return last is not None and (translation_error_m(last, T_map_curr) >= distance_m
+                                     or rotation_error_deg(last, T_map_curr) >= rotation_deg)
+
+    def finish(self) -> list[OdometryStep]:
+        """The steps; a first scan still waiting for a motion (a log of one scan) enters the voxel map as it is."""
+        if self.first_scan is not None and self.voxel_map is not None:
+            points, channels = _map_points(self.first_scan[0], self.first_scan[1], None)
+            self.voxel_map.insert(apply(self.T_map_prev, points), channels)
+        return self.steps
 
 
 __all__ = [
