@@ -20,7 +20,7 @@ from fleetcal.pipeline.errors import DecodeError
 from fleetcal.pipeline.msgtypes import CAMERA_INFO, COMPRESSED_IMAGE, IMAGE, IMAGE_TYPES, POINTCLOUD2, TF_MESSAGE
 from fleetcal.pipeline.point_times import PointTimeKind, classify_point_times
 from fleetcal.pipeline.transforms import TransformTree
-from fleetcal.readers.base import LogReader
+from fleetcal.readers.base import LogReader, RawMessage, TopicInfo
 from fleetcal.readers.decode.camera_info import decode_camera_info
 from fleetcal.readers.decode.image import check_compressed_image, check_image
 from fleetcal.readers.decode.pointcloud2 import MAX_RANGE_M, check_pointcloud2, decode_pointcloud2
@@ -230,70 +230,16 @@ def inspect_log(reader: LogReader, max_range_m: float = MAX_RANGE_M) -> InspectR
     """Summarise ``reader``'s log in one streaming pass (see module docstring); lidar points beyond
     ``max_range_m`` (metres, ``io.max_range_m``) count as problems."""
     infos = reader.topics
-    stats = {name: _TopicStats() for name in infos}
-    tf = TfCheck(TransformTree())
-    scans: dict[str, LidarSummary] = {}
-    total = 0
+    seen = _Seen({name: _TopicStats() for name in infos}, TfCheck(TransformTree()))
     for raw in reader.messages():
-        total += 1
-        topic = stats.setdefault(raw.topic, _TopicStats())
-        if topic.count == 0:
-            topic.first_ns = raw.log_time_ns
-        topic.count += 1
-        topic.last_ns = max(topic.last_ns, raw.log_time_ns)
-        info = infos.get(raw.topic)
-        decodable = info is not None and info.decodable and not topic.decode_failed
-        msgtype = info.msgtype if info is not None else ""
-        if not decodable or (topic.count > 1 and msgtype not in CHECKS and msgtype != TF_MESSAGE):
-            continue
-        try:
-            msg = reader.deserialize(raw)
-        except DecodeError as err:
-            if msgtype == TF_MESSAGE:
-                tf.bad_entries[raw.topic] = tf.bad_entries.get(raw.topic, 0) + 1
-                tf.first_bad = tf.first_bad or str(err)
-            elif msgtype in CHECKS:
-                _bad_message(topic, err)
-            else:
-                topic.decode_failed = True
-            continue
-        if topic.count == 1:
-            topic.frame_id = _frame_id(msg)
-        if msgtype == TF_MESSAGE:
-            add_tf_message(tf, raw.topic, getattr(msg, "transforms", []), is_static_tf_topic(raw.topic))
-        elif msgtype in CHECKS:
-            try:
-                CHECKS[msgtype](msg)
-                if msgtype == POINTCLOUD2 and raw.topic not in scans:
-                    scans[raw.topic] = lidar_summary(msg, raw.topic, max_range_m)
-            except DecodeError as err:
-                _bad_message(topic, err)
-    tf.structure = tf_structure_problems(tf.tree)
-
-    summaries: list[TopicSummary] = []
-    for name in sorted(stats):
-        topic = stats[name]
-        info = infos.get(name)
-        span_s = (topic.last_ns - topic.first_ns) / 1e9
-        rate = (topic.count - 1) / span_s if topic.count >= 2 and span_s > 0 else None
-        summaries.append(
-            TopicSummary(
-                name=name,
-                type=info.msgtype if info is not None else "",
-                count=topic.count,
-                rate_hz=rate,
-                frame_id=topic.frame_id,
-                decodable=info is not None and info.decodable and not topic.decode_failed,
-            )
-        )
+        _check_message(reader, raw, infos, seen, max_range_m)
+    seen.tf.structure = tf_structure_problems(seen.tf.tree)
+    stats, scans = seen.stats, seen.scans
+    summaries = [_topic_summary(name, stats[name], infos.get(name)) for name in sorted(stats)]
     names = [t.name for t in summaries]
     types = {t.name: t.type for t in summaries}
-    camera_info: dict[str, str] = {}
-    for name in names:
-        if types[name] in IMAGE_TYPES:
-            info_topic = camera_info_topic_for(name, infos)
-            if info_topic is not None:
-                camera_info[name] = info_topic
+    camera_info = {name: info_topic for name in names if types[name] in IMAGE_TYPES
+                   and (info_topic := camera_info_topic_for(name, infos)) is not None}
     counted = [t for t in summaries if t.count > 0]
     return InspectReport(
         paths=list(reader.paths),
@@ -304,16 +250,76 @@ def inspect_log(reader: LogReader, max_range_m: float = MAX_RANGE_M) -> InspectR
         lidar_topics=[n for n in names if types[n] == POINTCLOUD2],
         camera_topics=sorted(camera_info),
         camera_info_topics=camera_info,
-        tf=sorted((TfEdge(*edge) for edge in tf.tree.edges()), key=lambda e: (not e.static, e.parent, e.child)),
+        tf=sorted((TfEdge(*edge) for edge in seen.tf.tree.edges()),
+                  key=lambda e: (not e.static, e.parent, e.child)),
         undecodable_topics=[t.name for t in summaries if not t.decodable],
         truncation=truncation_of(reader),
-        message_count=total,
+        message_count=seen.total,
         lidar_scans=scans,
-        problems=_problems(stats, scans, tf) + [
+        problems=_problems(stats, scans, seen.tf) + [
             f"{name}: image topic without a CameraInfo topic beside it: calibrate and process cannot use it"
             for name in names if types[name] in IMAGE_TYPES and name not in camera_info and stats[name].count
         ],
     )
+
+
+@dataclass
+class _Seen:
+    """What the pass over a log has seen so far: per-topic counts, the tf tree, each lidar topic's first scan."""
+
+    stats: dict[str, _TopicStats]
+    tf: TfCheck
+    scans: dict[str, LidarSummary] = field(default_factory=dict)
+    total: int = 0
+
+
+def _check_message(reader: LogReader, raw: RawMessage, infos: dict[str, TopicInfo], seen: _Seen,
+                   max_range_m: float) -> None:
+    """Count one message and check its content: every message of a checked type or of tf, the first of the
+    others (its frame id); a message that does not decode is counted as bad (a whole topic of an unchecked
+    type: undecodable)."""
+    seen.total += 1
+    topic = seen.stats.setdefault(raw.topic, _TopicStats())
+    if topic.count == 0:
+        topic.first_ns = raw.log_time_ns
+    topic.count += 1
+    topic.last_ns = max(topic.last_ns, raw.log_time_ns)
+    info = infos.get(raw.topic)
+    decodable = info is not None and info.decodable and not topic.decode_failed
+    msgtype = info.msgtype if info is not None else ""
+    if not decodable or (topic.count > 1 and msgtype not in CHECKS and msgtype != TF_MESSAGE):
+        return
+    try:
+        msg = reader.deserialize(raw)
+    except DecodeError as err:
+        if msgtype == TF_MESSAGE:
+            seen.tf.bad_entries[raw.topic] = seen.tf.bad_entries.get(raw.topic, 0) + 1
+            seen.tf.first_bad = seen.tf.first_bad or str(err)
+        elif msgtype in CHECKS:
+            _bad_message(topic, err)
+        else:
+            topic.decode_failed = True
+        return
+    if topic.count == 1:
+        topic.frame_id = _frame_id(msg)
+    if msgtype == TF_MESSAGE:
+        add_tf_message(seen.tf, raw.topic, getattr(msg, "transforms", []), is_static_tf_topic(raw.topic))
+    elif msgtype in CHECKS:
+        try:
+            CHECKS[msgtype](msg)
+            if msgtype == POINTCLOUD2 and raw.topic not in seen.scans:
+                seen.scans[raw.topic] = lidar_summary(msg, raw.topic, max_range_m)
+        except DecodeError as err:
+            _bad_message(topic, err)
+
+
+def _topic_summary(name: str, topic: _TopicStats, info: TopicInfo | None) -> TopicSummary:
+    """One topic's line of the report: its type, count, mean rate (Hz) and frame id."""
+    span_s = (topic.last_ns - topic.first_ns) / 1e9
+    rate = (topic.count - 1) / span_s if topic.count >= 2 and span_s > 0 else None
+    return TopicSummary(name=name, type=info.msgtype if info is not None else "", count=topic.count, rate_hz=rate,
+                        frame_id=topic.frame_id,
+                        decodable=info is not None and info.decodable and not topic.decode_failed)
 
 
 def _bad_message(topic: _TopicStats, err: DecodeError) -> None:
