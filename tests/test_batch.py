@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
@@ -94,7 +95,10 @@ def counting_process(paths: list[str], out_dir: Path, config: Config) -> Process
 
 
 def _manifest(out: Path) -> dict[str, dict[str, Any]]:
-    return {Path(r["out_dir"]).name: r for r in pq.read_table(out / MANIFEST_FILE).to_pylist()}
+    """The manifest's rows by log, read from one snapshot of the file: a running batch replaces it (atomically)
+    while this reads, and a reader that opens it twice may mix two versions."""
+    table = pq.read_table(pa.BufferReader((out / MANIFEST_FILE).read_bytes()))
+    return {Path(r["out_dir"]).name: r for r in table.to_pylist()}
 
 
 @pytest.fixture()
