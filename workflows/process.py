@@ -24,6 +24,7 @@ from fleetcal.pipeline.engine import Engine
 from fleetcal.pipeline.errors import InputError
 from fleetcal.pipeline.frames import LidarFrame
 from fleetcal.pipeline.transforms import TransformTree, apply
+from fleetcal.readers.base import LogReader
 from fleetcal.readers.decode import decode_pointcloud2
 from fleetcal.readers.frames import CameraInfoTracker, decode_camera_image, load_tf_tree
 from fleetcal.readers.open import open_log
@@ -253,28 +254,7 @@ def process_log(
             times["calibration"] = time.perf_counter() - t0
 
             t0 = time.perf_counter()
-            source = ColorSource(
-                tuple(paths), tuple((p.camera_topic, tuple(map(tuple, p.T_camera_lidar.tolist()))) for p in pairs),
-                config.io.pairing_tolerance_ns, config.io.allow_truncated, config.calibration.camera_model,
-                tuple(config.io.rectified_topics), config.calibration.motion_compensation,
-                config.calibration.point_times, lidar_topic, mapping.ego_motion_registration(config),
-                config.io.max_range_m,
-            )  # fmt: skip
-            first = next(iter(reader.messages(topics=[lidar_topic])), None)
-            has_intensity = first is not None and any(
-                f.name == "intensity" for f in reader.deserialize(first).fields)
-            map_config = dataclasses.replace(config, mapping=dataclasses.replace(
-                config.mapping, channels=_mapping_channels(config, True, has_intensity)))  # fmt: skip
-            reg = mapping.registration_config(map_config)
-            uses_color = reg.channels in ("color", "combined")
-            stage = functools.partial(prepare_colored_scan, source=source if uses_color else None, config=reg)
-            outcome = None
-            try:
-                outcome = mapping.run_mapping(paths, reader, lidar_topic, map_config, engine, stage)
-            except mapping.NotEnoughScansError as err:
-                warnings.append(f"mapping skipped: {err}")
-            if outcome is not None:
-                warnings.extend(outcome.warnings())
+            outcome = _mapped(paths, reader, lidar_topic, pairs, config, engine, warnings)
             times["mapping"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
@@ -285,23 +265,8 @@ def process_log(
         times["tables_report"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
-        overlays: dict[str, list[tuple[int, bytes]]] = {}
-        for p in pairs:
-            if p.frames and p.overlay_image is not None:
-                f = p.frames[0]
-                pts = f.points_at_camera_stamp()
-                overlays[p.camera_topic] = [(f.stamp_ns, jpeg_overlay(p.overlay_image, f.camera,
-                                                                      apply(p.T_camera_lidar, pts)))]  # fmt: skip
         target = writeback_path(paths[0], out_dir)
-        write_back(
-            reader, target,
-            calibrations=[CalibratedPose(p.lidar_frame, p.camera_frame, p.T_camera_lidar) for p in pairs],
-            map_points_xyz=outcome.map_points_xyz if outcome else None,
-            map_channels=outcome.map_channels if outcome else None,
-            trajectory_stamps_ns=[s.stamp_ns for s in outcome.steps] if outcome else (),
-            trajectory_T_map_lidar=[s.T_map_lidar for s in outcome.steps] if outcome else (),
-            overlays=overlays,
-        )  # fmt: skip
+        _write_back_log(reader, target, pairs, outcome)
         times["writeback"] = time.perf_counter() - t0
         log_start = reader.start_ns
     result = ProcessResult(
@@ -312,3 +277,51 @@ def process_log(
     with atomic_path(out_dir / RESULT_FILE) as tmp:
         Path(tmp).write_text(json.dumps(result.to_json(), indent=1, default=float), encoding="utf-8")
     return result
+
+
+def _mapped(paths: list[str], reader: LogReader, lidar_topic: str, pairs: list[calib.PairCalibration], config: Config,
+            engine: Engine, warnings: list[str]) -> mapping.MappingOutcome | None:
+    """The log mapped with the scans' intensity where they have one and the images' colour (by the calibrations
+    just found) where the settings ask; None where it has too few scans (said in ``warnings``)."""
+    source = ColorSource(
+        tuple(paths), tuple((p.camera_topic, tuple(map(tuple, p.T_camera_lidar.tolist()))) for p in pairs),
+        config.io.pairing_tolerance_ns, config.io.allow_truncated, config.calibration.camera_model,
+        tuple(config.io.rectified_topics), config.calibration.motion_compensation,
+        config.calibration.point_times, lidar_topic, mapping.ego_motion_registration(config),
+        config.io.max_range_m,
+    )  # fmt: skip
+    first = next(iter(reader.messages(topics=[lidar_topic])), None)
+    has_intensity = first is not None and any(f.name == "intensity" for f in reader.deserialize(first).fields)
+    map_config = dataclasses.replace(config, mapping=dataclasses.replace(
+        config.mapping, channels=_mapping_channels(config, True, has_intensity)))  # fmt: skip
+    reg = mapping.registration_config(map_config)
+    uses_color = reg.channels in ("color", "combined")
+    stage = functools.partial(prepare_colored_scan, source=source if uses_color else None, config=reg)
+    try:
+        outcome = mapping.run_mapping(paths, reader, lidar_topic, map_config, engine, stage)
+    except mapping.NotEnoughScansError as err:
+        warnings.append(f"mapping skipped: {err}")
+        return None
+    warnings.extend(outcome.warnings())
+    return outcome
+
+
+def _write_back_log(reader: LogReader, target: Path, pairs: list[calib.PairCalibration],
+                    outcome: mapping.MappingOutcome | None) -> None:
+    """The new log beside the input: the calibrations, the map, the trajectory and one overlay per camera."""
+    overlays: dict[str, list[tuple[int, bytes]]] = {}
+    for p in pairs:
+        if p.frames and p.overlay_image is not None:
+            f = p.frames[0]
+            pts = f.points_at_camera_stamp()
+            overlays[p.camera_topic] = [(f.stamp_ns, jpeg_overlay(p.overlay_image, f.camera,
+                                                                  apply(p.T_camera_lidar, pts)))]  # fmt: skip
+    write_back(
+        reader, target,
+        calibrations=[CalibratedPose(p.lidar_frame, p.camera_frame, p.T_camera_lidar) for p in pairs],
+        map_points_xyz=outcome.map_points_xyz if outcome else None,
+        map_channels=outcome.map_channels if outcome else None,
+        trajectory_stamps_ns=[s.stamp_ns for s in outcome.steps] if outcome else (),
+        trajectory_T_map_lidar=[s.T_map_lidar for s in outcome.steps] if outcome else (),
+        overlays=overlays,
+    )  # fmt: skip
