@@ -210,72 +210,90 @@ def _new_records(
     """The new messages, serialised in ``profile``, sorted by log time."""
     start_ns = reader.start_ns
     end_ns = max(start_ns, reader.end_ns - 1)
-    records: list[_Record] = []
-
-    def add(log_time_ns: int, channel: ChannelInfo, msgtype: str, msg: Any) -> None:
-        data = _serialize(msg, msgtype, profile)
-        records.append(_Record(int(log_time_ns), int(log_time_ns), channel, data))
-
-    if calibrations:
-        transforms = [
-            (
-                start_ns,
-                cal.lidar_frame.lstrip("/"),
-                cal.camera_frame.lstrip("/"),
-                invert(_check_T(cal.T_camera_lidar, f"T_camera_lidar of {cal.camera_frame}")),
-            )
-            for cal in calibrations
-        ]
-        _, tf_channel = _first_channel(reader, TF_STATIC_TOPIC)
-        same_schema = (
-            tf_channel is not None
-            and normalize_msgtype(tf_channel.schema_name) == TF_MESSAGE
-            and tf_channel.message_encoding == _SERIALIZATION[profile]
-        )
-        if tf_channel is None or not same_schema:
-            tf_channel = _new_channel(TF_STATIC_TOPIC, TF_MESSAGE, profile)
-        add(start_ns, tf_channel, TF_MESSAGE, ros_messages.tf_message(transforms, profile))
-
-    if map_points_xyz is not None:
-        points = np.asarray(map_points_xyz)
-        if points.ndim != 2 or points.shape[1] != 3:
-            raise InputError(f"map points must be (N, 3), got shape {points.shape}")
-        unknown = sorted(set(map_channels) - {"intensity", "r", "g", "b"})
-        if unknown:
-            raise InputError(f"unknown map channels {unknown} (expected intensity, r, g, b)")
-        channels: dict[str, NDArray[Any]] = {}
-        if "intensity" in map_channels:
-            channels["intensity"] = np.asarray(map_channels["intensity"], dtype=np.float32)
-        colour = [name for name in ("r", "g", "b") if name in map_channels]
-        if colour and len(colour) != 3:
-            raise InputError(f"map colour needs all of r, g, b, got {colour}")
-        for name in colour:
-            channels[name] = np.asarray(map_channels[name], dtype=np.uint8)
-        for name, values in channels.items():
-            if values.shape != (points.shape[0],):
-                raise InputError(
-                    f"map channel {name} has shape {values.shape}, expected ({points.shape[0]},)"
-                )
-        msg = ros_messages.pointcloud2(
-            end_ns, MAP_FRAME, points.astype(np.float32, copy=False), channels, profile=profile
-        )
-        add(end_ns, _new_channel(MAP_TOPIC, POINTCLOUD2, profile), POINTCLOUD2, msg)
-
     if len(trajectory_stamps_ns) != len(trajectory_T_map_lidar):
         raise InputError(
             f"trajectory has {len(trajectory_stamps_ns)} stamps but {len(trajectory_T_map_lidar)} poses"
         )
+    records: list[_Record] = []
+    if calibrations:
+        records.append(_record(start_ns, _tf_static_channel(reader, profile), TF_MESSAGE,
+                               _calibration_message(calibrations, start_ns, profile), profile))
+    if map_points_xyz is not None:
+        records.append(_record(end_ns, _new_channel(MAP_TOPIC, POINTCLOUD2, profile), POINTCLOUD2,
+                               _map_message(map_points_xyz, map_channels, end_ns, profile), profile))
     if len(trajectory_stamps_ns):
         poses = [_check_T(T, "a trajectory pose") for T in trajectory_T_map_lidar]
         msg = ros_messages.path(end_ns, MAP_FRAME, [int(s) for s in trajectory_stamps_ns], poses, profile)
-        add(end_ns, _new_channel(TRAJECTORY_TOPIC, PATH, profile), PATH, msg)
+        records.append(_record(end_ns, _new_channel(TRAJECTORY_TOPIC, PATH, profile), PATH, msg, profile))
+    records += _overlay_records(reader, overlays, profile)
+    records.sort(key=lambda record: record.log_time_ns)
+    return records
 
+
+def _record(log_time_ns: int, channel: ChannelInfo, msgtype: str, msg: Any, profile: Profile) -> _Record:
+    """``msg`` serialised in ``profile`` on ``channel``, published at its log time."""
+    return _Record(int(log_time_ns), int(log_time_ns), channel, _serialize(msg, msgtype, profile))
+
+
+def _tf_static_channel(reader: LogReader, profile: Profile) -> ChannelInfo:
+    """The log's own ``/tf_static`` channel where it has one of the same schema and encoding, else a new one."""
+    _, tf_channel = _first_channel(reader, TF_STATIC_TOPIC)
+    same_schema = (
+        tf_channel is not None
+        and normalize_msgtype(tf_channel.schema_name) == TF_MESSAGE
+        and tf_channel.message_encoding == _SERIALIZATION[profile]
+    )
+    return tf_channel if tf_channel is not None and same_schema else _new_channel(TF_STATIC_TOPIC, TF_MESSAGE, profile)
+
+
+def _calibration_message(calibrations: Sequence[CalibratedPose], stamp_ns: int, profile: Profile) -> Any:
+    """A TFMessage of every calibration as ``T_lidar_camera`` (lidar frame -> camera frame)."""
+    transforms = [
+        (
+            stamp_ns,
+            cal.lidar_frame.lstrip("/"),
+            cal.camera_frame.lstrip("/"),
+            invert(_check_T(cal.T_camera_lidar, f"T_camera_lidar of {cal.camera_frame}")),
+        )
+        for cal in calibrations
+    ]
+    return ros_messages.tf_message(transforms, profile)
+
+
+def _map_message(map_points_xyz: NDArray[np.floating], map_channels: Mapping[str, NDArray[Any]], stamp_ns: int,
+                 profile: Profile) -> Any:
+    """The map as a PointCloud2 in the ``map`` frame: x, y, z float32 and the channels given (intensity float32,
+    r, g, b uint8, all three or none)."""
+    points = np.asarray(map_points_xyz)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise InputError(f"map points must be (N, 3), got shape {points.shape}")
+    unknown = sorted(set(map_channels) - {"intensity", "r", "g", "b"})
+    if unknown:
+        raise InputError(f"unknown map channels {unknown} (expected intensity, r, g, b)")
+    channels: dict[str, NDArray[Any]] = {}
+    if "intensity" in map_channels:
+        channels["intensity"] = np.asarray(map_channels["intensity"], dtype=np.float32)
+    colour = [name for name in ("r", "g", "b") if name in map_channels]
+    if colour and len(colour) != 3:
+        raise InputError(f"map colour needs all of r, g, b, got {colour}")
+    for name in colour:
+        channels[name] = np.asarray(map_channels[name], dtype=np.uint8)
+    for name, values in channels.items():
+        if values.shape != (points.shape[0],):
+            raise InputError(f"map channel {name} has shape {values.shape}, expected ({points.shape[0]},)")
+    return ros_messages.pointcloud2(stamp_ns, MAP_FRAME, points.astype(np.float32, copy=False), channels,
+                                    profile=profile)
+
+
+def _overlay_records(reader: LogReader, overlays: Mapping[str, Sequence[tuple[int, bytes]]],
+                     profile: Profile) -> list[_Record]:
+    """Each camera's overlay JPEGs on ``/fleetcal/overlay/<camera topic>``, in the camera's frame."""
     CompressedImage = get_store(profile).types[COMPRESSED_IMAGE]
+    records: list[_Record] = []
     for camera_topic, images in overlays.items():
         if not images:
             continue
-        topic = OVERLAY_PREFIX + camera_topic.lstrip("/")
-        channel = _new_channel(topic, COMPRESSED_IMAGE, profile)
+        channel = _new_channel(OVERLAY_PREFIX + camera_topic.lstrip("/"), COMPRESSED_IMAGE, profile)
         frame_id = _frame_of(reader, camera_topic)
         for stamp_ns, jpeg in images:
             msg = CompressedImage(
@@ -283,9 +301,7 @@ def _new_records(
                 format="jpeg",
                 data=np.frombuffer(jpeg, dtype=np.uint8).copy(),
             )
-            add(stamp_ns, channel, COMPRESSED_IMAGE, msg)
-
-    records.sort(key=lambda record: record.log_time_ns)
+            records.append(_record(stamp_ns, channel, COMPRESSED_IMAGE, msg, profile))
     return records
 
 
