@@ -12,7 +12,6 @@ import logging
 import struct
 from collections.abc import Collection, Iterator, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -229,14 +228,9 @@ def _decode_pairs(
     rectified_topics: Collection[str] = (),
     max_range_m: float = MAX_RANGE_M,
 ) -> Iterator[tuple[LidarFrame, CameraFrame]]:
-    lidar_uses: dict[int, int] = {}
-    camera_uses: dict[int, int] = {}
-    for li, ci in pairs:
-        lidar_uses[li] = lidar_uses.get(li, 0) + 1
-        camera_uses[ci] = camera_uses.get(ci, 0) + 1
-    pending = sorted(pairs)
-    lidar_frames: dict[int, LidarFrame] = {}
-    camera_frames: dict[int, CameraFrame] = {}
+    """The ``pairs`` (lidar index, camera index on their topics) decoded in one pass, each yielded as soon as
+    both its frames are; a frame that does not decode drops its pairs (an error only where none decodes)."""
+    waiting = _PairsWaiting(pairs)
     info = CameraInfoTracker.for_image(reader, camera_topic, rectified_topics)
     topics = [lidar_topic, camera_topic] + ([info.topic] if info.topic else [])
     seen = {lidar_topic: -1, camera_topic: -1}
@@ -247,47 +241,66 @@ def _decode_pairs(
             continue
         seen[raw.topic] += 1
         index = seen[raw.topic]
-        msg: Any
         is_lidar = raw.topic == lidar_topic
-        uses = lidar_uses if is_lidar else camera_uses if raw.topic == camera_topic else {}
-        if uses.get(index, 0) <= 0:
+        if not waiting.wants(is_lidar, index):
             continue
         try:
             msg = reader.deserialize(raw)
             if is_lidar:
-                lidar_frames[index] = decode_pointcloud2(msg, lidar_topic, raw.log_time_ns, max_range_m)
+                waiting.lidar_frames[index] = decode_pointcloud2(msg, lidar_topic, raw.log_time_ns, max_range_m)
             else:
                 frame = decode_camera_image(camera_type, msg, camera_topic, raw.log_time_ns)
                 frame.camera = info.model
-                camera_frames[index] = frame
+                waiting.camera_frames[index] = frame
         except DecodeError as err:
             # One bad frame must not end the run: skip its pairs; fail only when nothing decodes.
             stats.undecodable += 1
             first_error = first_error or err
             log.warning("skipping an undecodable frame on %s at log time %d: %s", raw.topic, raw.log_time_ns, err)
-            for li, ci in [pair for pair in pending if (pair[0] if is_lidar else pair[1]) == index]:
-                pending.remove((li, ci))
-                lidar_uses[li] -= 1
-                camera_uses[ci] -= 1
-                if not lidar_uses[li]:
-                    lidar_frames.pop(li, None)
-                if not camera_uses[ci]:
-                    camera_frames.pop(ci, None)
-            if not pending:
-                break
-            continue
-        ready = [(li, ci) for li, ci in pending if li in lidar_frames and ci in camera_frames]
-        for li, ci in ready:
-            pending.remove((li, ci))
-            stats.yielded += 1
-            yield lidar_frames[li], camera_frames[ci]
-            lidar_uses[li] -= 1
-            camera_uses[ci] -= 1
-            if not lidar_uses[li]:
-                del lidar_frames[li]
-            if not camera_uses[ci]:
-                del camera_frames[ci]
-        if not pending:
+            waiting.drop(is_lidar, index)
+        else:
+            for pair in waiting.ready():
+                stats.yielded += 1
+                yield pair
+        if not waiting.pending:
             break
     if stats.yielded == 0 and first_error is not None:
         raise first_error
+
+
+class _PairsWaiting:
+    """The pairs not yet yielded and the decoded frames they still need (a frame is let go with its last pair)."""
+
+    def __init__(self, pairs: list[tuple[int, int]]) -> None:
+        self.pending = sorted(pairs)
+        self.lidar_uses: dict[int, int] = {}
+        self.camera_uses: dict[int, int] = {}
+        for li, ci in pairs:
+            self.lidar_uses[li] = self.lidar_uses.get(li, 0) + 1
+            self.camera_uses[ci] = self.camera_uses.get(ci, 0) + 1
+        self.lidar_frames: dict[int, LidarFrame] = {}
+        self.camera_frames: dict[int, CameraFrame] = {}
+
+    def wants(self, is_lidar: bool, index: int) -> bool:
+        """Whether a pending pair needs the ``index``-th lidar (or camera) message."""
+        return (self.lidar_uses if is_lidar else self.camera_uses).get(index, 0) > 0
+
+    def _release(self, li: int, ci: int) -> None:
+        self.pending.remove((li, ci))
+        self.lidar_uses[li] -= 1
+        self.camera_uses[ci] -= 1
+        if not self.lidar_uses[li]:
+            self.lidar_frames.pop(li, None)
+        if not self.camera_uses[ci]:
+            self.camera_frames.pop(ci, None)
+
+    def drop(self, is_lidar: bool, index: int) -> None:
+        """Give up the pairs of the ``index``-th lidar (or camera) message, which did not decode."""
+        for li, ci in [pair for pair in self.pending if (pair[0] if is_lidar else pair[1]) == index]:
+            self._release(li, ci)
+
+    def ready(self) -> Iterator[tuple[LidarFrame, CameraFrame]]:
+        """The pending pairs whose two frames are decoded, in order; each released once yielded."""
+        for li, ci in [(li, ci) for li, ci in self.pending if li in self.lidar_frames and ci in self.camera_frames]:
+            yield self.lidar_frames[li], self.camera_frames[ci]
+            self._release(li, ci)
