@@ -77,6 +77,13 @@ def _size(text: str) -> tuple[int, int]:
 
 def add_simulation_arguments(parser: argparse.ArgumentParser, frames: int, size: str) -> None:
     """The options shared by ``simulate`` and ``demo``."""
+    _add_log_arguments(parser, frames)
+    _add_lidar_arguments(parser)
+    _add_camera_arguments(parser, size)
+
+
+def _add_log_arguments(parser: argparse.ArgumentParser, frames: int) -> None:
+    """The log: its format, length, scene, seed, speed and what it carries besides the sensors."""
     parser.add_argument(
         "--format",
         choices=("mcap", "ros1", "ros2"),
@@ -90,6 +97,43 @@ def add_simulation_arguments(parser: argparse.ArgumentParser, frames: int, size:
         help=f"lidar scans at 10 Hz (default {frames})",
     )
     parser.add_argument("--scene", choices=SCENES, default="street", help="default street")
+    parser.add_argument("--seed", type=_int_range(0, 2**63 - 1), default=0, help="default 0")
+    parser.add_argument(
+        "--speed",
+        type=_float_range(0.0, 60.0),
+        default=None,
+        metavar="M_S",
+        help="vehicle speed in m/s (default: street 8, corridor 1.5, open 5)",
+    )
+    parser.add_argument(
+        "--perturb-deg",
+        type=_float_range(0.0, 45.0),
+        default=2.0,
+        metavar="D",
+        help="rotation error of the calibration written to /tf_static (default 2)",
+    )
+    parser.add_argument(
+        "--perturb-m",
+        type=_float_range(0.0, 2.0),
+        default=0.1,
+        metavar="M",
+        help="translation error of the calibration written to /tf_static (default 0.1)",
+    )
+    parser.add_argument("--no-tf-static", action="store_true",
+                        help="write no /tf_static (no mount of the lidar or the cameras): calibration then "
+                             "finds its own start")
+    parser.add_argument("--no-odometry", action="store_true",
+                        help="write no /tf odometry (odom -> base_link): calibration then moves the scans by "
+                             "fleetcal's own odometry")
+    parser.add_argument(
+        "--compressed",
+        action="store_true",
+        help="CompressedImage jpeg on /camera_N/image_raw/compressed instead of rgb8 Image",
+    )
+
+
+def _add_lidar_arguments(parser: argparse.ArgumentParser) -> None:
+    """The lidar: its pattern, layout, mount, range and motion distortion."""
     parser.add_argument(
         "--lidar",
         choices=LIDAR_PATTERNS,
@@ -120,6 +164,29 @@ def add_simulation_arguments(parser: argparse.ArgumentParser, frames: int, size:
         f"line and scan (default {DEFAULT_LAYOUT['rosette'][1]}, as a Livox Avia with the default lines)",
     )
     parser.add_argument(
+        "--max-range",
+        type=_float_range(1.0, 1000.0),
+        default=100.0,
+        metavar="M",
+        help="lidar max range in m (default 100; 20 keeps the corridor's ends out of sight)",
+    )
+    parser.add_argument(
+        "--organized",
+        action="store_true",
+        help="organised point clouds (height = beams, NaN where no return)",
+    )
+    parser.add_argument(
+        "--skewed",
+        action="store_true",
+        help="motion distortion: cast each lidar column from the pose at its firing time and "
+        "report it in the lidar frame of that time (default: de-skewed scans, every point "
+        "at the scan stamp pose)",
+    )
+
+
+def _add_camera_arguments(parser: argparse.ArgumentParser, size: str) -> None:
+    """The cameras: how many, their size, lens, mount and clock."""
+    parser.add_argument(
         "--cameras",
         type=_int_range(1, MAX_CAMERAS),
         default=1,
@@ -132,23 +199,10 @@ def add_simulation_arguments(parser: argparse.ArgumentParser, frames: int, size:
         metavar="WxH",
         help=f"camera resolution (default {size})",
     )
-    parser.add_argument(
-        "--max-range",
-        type=_float_range(1.0, 1000.0),
-        default=100.0,
-        metavar="M",
-        help="lidar max range in m (default 100; 20 keeps the corridor's ends out of sight)",
-    )
     parser.add_argument("--camera-yaw", type=_float_range(-180.0, 180.0), default=0.0, metavar="DEG",
                         help="every camera turned DEG degrees left of its usual direction (default 0)")
     parser.add_argument("--camera-roll", type=_float_range(-180.0, 180.0), default=0.0, metavar="DEG",
                         help="every camera rolled DEG degrees about its optical axis (default 0: upright)")
-    parser.add_argument("--no-tf-static", action="store_true",
-                        help="write no /tf_static (no mount of the lidar or the cameras): calibration then "
-                             "finds its own start")
-    parser.add_argument("--no-odometry", action="store_true",
-                        help="write no /tf odometry (odom -> base_link): calibration then moves the scans by "
-                             "fleetcal's own odometry")
     lens = parser.add_mutually_exclusive_group()
     lens.add_argument("--fisheye", action="store_true", help="equidistant fisheye cameras instead of pinhole")
     lens.add_argument("--panorama", action="store_true",
@@ -160,37 +214,6 @@ def add_simulation_arguments(parser: argparse.ArgumentParser, frames: int, size:
                       help="wide-angle cameras (fx = 0.70 x width) with a real lens's strong plumb_bob barrel "
                            "distortion, D = -0.4398 0.2329 -0.0011 0.00021 -0.073, whose model folds over "
                            "before the image's corners, instead of the mild pinhole")
-    parser.add_argument(
-        "--compressed",
-        action="store_true",
-        help="CompressedImage jpeg on /camera_N/image_raw/compressed instead of rgb8 Image",
-    )
-    parser.add_argument(
-        "--organized",
-        action="store_true",
-        help="organised point clouds (height = beams, NaN where no return)",
-    )
-    parser.add_argument(
-        "--speed",
-        type=_float_range(0.0, 60.0),
-        default=None,
-        metavar="M_S",
-        help="vehicle speed in m/s (default: street 8, corridor 1.5, open 5)",
-    )
-    parser.add_argument(
-        "--perturb-deg",
-        type=_float_range(0.0, 45.0),
-        default=2.0,
-        metavar="D",
-        help="rotation error of the calibration written to /tf_static (default 2)",
-    )
-    parser.add_argument(
-        "--perturb-m",
-        type=_float_range(0.0, 2.0),
-        default=0.1,
-        metavar="M",
-        help="translation error of the calibration written to /tf_static (default 0.1)",
-    )
     parser.add_argument(
         "--time-offset-ms",
         type=_float_range(-MAX_TIME_OFFSET_MS, MAX_TIME_OFFSET_MS),
@@ -207,15 +230,6 @@ def add_simulation_arguments(parser: argparse.ArgumentParser, frames: int, size:
         help="rolling shutter: every camera exposes its rows top to bottom over MS ms, the stamp being the "
         "first row's time (default 0: global shutter)",
     )
-    parser.add_argument("--seed", type=_int_range(0, 2**63 - 1), default=0, help="default 0")
-    parser.add_argument(
-        "--skewed",
-        action="store_true",
-        help="motion distortion: cast each lidar column from the pose at its firing time and "
-        "report it in the lidar frame of that time (default: de-skewed scans, every point "
-        "at the scan stamp pose)",
-    )
-
 
 def options_from_args(args: argparse.Namespace) -> SimulationOptions:
     width, height = args.image_size
