@@ -377,8 +377,32 @@ def _street(rng: np.random.Generator, seed: int) -> Scene:
     """A one-way loop around a city block: road, markings, kerbs, pavements, facades, poles, trees, cars."""
     b = SceneBuilder(rng)
     A, B, road_half, walk = 48.0, 32.0, 4.5, 4.0
-    kerb_h = 0.12
     route = RouteSpec(A + 1.75, B + 1.75, 10.0)
+    _street_ground(b, A, B, road_half, walk)
+    for p0, d, length in _ring_sides(A, B):
+        side = _Side(p0, d, np.array([-d[1], d[0], 0.0]), length, road_half + 0.5)
+        _road_markings(b, side, road_half)
+        _parked_cars(b, side, road_half)
+        _pavement_furniture(b, side, road_half)
+        _facades(b, side, road_half + walk)
+    return b.build("street", seed, route, lidar_height_m=1.9)
+
+
+@dataclass(frozen=True)
+class _Side:
+    """One side of the street's loop: its start (3,), direction (3,) and left (3,) unit vectors, length (m) and
+    where its straight part starts (m from the corner)."""
+
+    p0: NDArray[np.float64]
+    d: NDArray[np.float64]
+    left: NDArray[np.float64]
+    length: float
+    straight0: float
+
+
+def _street_ground(b: SceneBuilder, A: float, B: float, road_half: float, walk: float) -> None:
+    """The asphalt, the block's kerbed concrete island and the four pavements."""
+    kerb_h = 0.12
     margin = 30.0
     b.quad(
         [-A - margin, -B - margin, 0.0],
@@ -409,78 +433,88 @@ def _street(rng: np.random.Generator, seed: int) -> Scene:
             CHECKER,
             0.6,
         )
-    for p0, d, length in _ring_sides(A, B):
-        left = np.array([-d[1], d[0], 0.0])
-        straight0 = road_half + 0.5
-        straight_len = length - 2 * straight0
-        # dashed centre line
-        s = straight0
-        while s + 3.0 < length - straight0:
-            c = p0 + d * s - left * 0.075 + np.array([0, 0, 0.006])
-            b.quad(c, d * 3.0, left * 0.15, "paint_yellow")
-            s += 9.0
-        for off in (road_half - 0.35, -(road_half - 0.35)):
-            c = p0 + d * straight0 + left * off - left * 0.06 + np.array([0, 0, 0.006])
-            b.quad(c, d * straight_len, left * 0.12, "paint_white")
-        for end in (straight0 + 0.6, length - straight0 - 4.6):
-            for k in range(9):
-                c = p0 + d * end + left * (-road_half + 0.3 + k * 0.95) + np.array([0, 0, 0.006])
-                b.quad(c, d * 4.0, left * 0.5, "paint_white")
-        for _ in range(3):
-            s0 = float(rng.uniform(straight0 + 6, length - straight0 - 10))
-            off = float(rng.uniform(-road_half + 0.5, road_half - 3.0))
-            c = p0 + d * s0 + left * off + np.array([0, 0, 0.003])
-            b.quad(
-                c,
-                d * float(rng.uniform(2, 5)),
-                left * float(rng.uniform(1.2, 2.5)),
-                "asphalt_dark",
-                "asphalt_light",
-                PATCHES,
-                0.8,
-            )
-        # parked cars along the inner kerb (left of the driving direction)
-        s = straight0 + 8.0
-        while s < length - straight0 - 12.0:
-            if rng.random() < 0.55:
-                _car(b, p0 + d * (s + 2.1) + left * (road_half - 1.2), float(np.arctan2(d[1], d[0])))
-            s += float(rng.uniform(5.5, 8.0))
-        # poles, signs and trees on both pavements
-        for side in (1.0, -1.0):
-            s = straight0 + float(rng.uniform(2, 6))
-            while s < length - straight0 - 2:
-                base = p0 + d * s + left * side * (road_half + 0.8)
-                if rng.random() < 0.5:
-                    _tree(b, base)
-                else:
-                    b.box([base[0], base[1], 2.6], [0.14, 0.14, 5.2], 0.0, "metal")
-                    if rng.random() < 0.6:
-                        face = -left * side
-                        sign_c = base + face * 0.09 - d * 0.35 + np.array([0, 0, 2.2])
-                        mats = [("sign_red", "sign_white"), ("sign_blue", "sign_white")][int(rng.integers(0, 2))]
-                        b.quad(
-                            sign_c,
-                            d * 0.7,
-                            np.array([0, 0, 0.7]),
-                            mats[0],
-                            mats[1],
-                            [STRIPES, CHECKER][int(rng.integers(0, 2))],
-                            0.175,
-                        )
-                s += float(rng.uniform(9.0, 16.0))
-        # facades: inner block (left of the driving direction) and outer row (right)
-        inset = road_half + walk
-        s = inset + 0.5
-        while s < length - inset - 4.0:
-            blen = float(min(rng.uniform(10.0, 22.0), length - inset - 0.5 - s))
-            _building(b, p0 + d * s + left * inset, d, blen, 8.0)
-            s += blen + float(rng.uniform(0.0, 3.0))
-        s = -inset + 0.5
-        while s < length + inset - 4.0:
-            blen = float(min(rng.uniform(10.0, 22.0), length + inset - 0.5 - s))
-            _building(b, p0 + d * (s + blen) - left * inset, -d, blen, 10.0)
-            s += blen + float(rng.uniform(0.0, 3.0))
-    return b.build("street", seed, route, lidar_height_m=1.9)
+
+
+def _road_markings(b: SceneBuilder, side: _Side, road_half: float) -> None:
+    """A dashed centre line, edge lines, zebra crossings at both ends and three asphalt patches."""
+    p0, d, left, length, straight0 = side.p0, side.d, side.left, side.length, side.straight0
+    s = straight0
+    while s + 3.0 < length - straight0:
+        c = p0 + d * s - left * 0.075 + np.array([0, 0, 0.006])
+        b.quad(c, d * 3.0, left * 0.15, "paint_yellow")
+        s += 9.0
+    for off in (road_half - 0.35, -(road_half - 0.35)):
+        c = p0 + d * straight0 + left * off - left * 0.06 + np.array([0, 0, 0.006])
+        b.quad(c, d * (length - 2 * straight0), left * 0.12, "paint_white")
+    for end in (straight0 + 0.6, length - straight0 - 4.6):
+        for k in range(9):
+            c = p0 + d * end + left * (-road_half + 0.3 + k * 0.95) + np.array([0, 0, 0.006])
+            b.quad(c, d * 4.0, left * 0.5, "paint_white")
+    for _ in range(3):
+        s0 = float(b.rng.uniform(straight0 + 6, length - straight0 - 10))
+        off = float(b.rng.uniform(-road_half + 0.5, road_half - 3.0))
+        c = p0 + d * s0 + left * off + np.array([0, 0, 0.003])
+        b.quad(
+            c,
+            d * float(b.rng.uniform(2, 5)),
+            left * float(b.rng.uniform(1.2, 2.5)),
+            "asphalt_dark",
+            "asphalt_light",
+            PATCHES,
+            0.8,
+        )
+
+
+def _parked_cars(b: SceneBuilder, side: _Side, road_half: float) -> None:
+    """Cars parked along the inner kerb (left of the driving direction)."""
+    s = side.straight0 + 8.0
+    while s < side.length - side.straight0 - 12.0:
+        if b.rng.random() < 0.55:
+            _car(b, side.p0 + side.d * (s + 2.1) + side.left * (road_half - 1.2),
+                 float(np.arctan2(side.d[1], side.d[0])))
+        s += float(b.rng.uniform(5.5, 8.0))
+
+
+def _pavement_furniture(b: SceneBuilder, side: _Side, road_half: float) -> None:
+    """Trees and poles (some with a sign facing the road) on both pavements."""
+    p0, d, left, length, straight0 = side.p0, side.d, side.left, side.length, side.straight0
+    for sign in (1.0, -1.0):
+        s = straight0 + float(b.rng.uniform(2, 6))
+        while s < length - straight0 - 2:
+            base = p0 + d * s + left * sign * (road_half + 0.8)
+            if b.rng.random() < 0.5:
+                _tree(b, base)
+            else:
+                b.box([base[0], base[1], 2.6], [0.14, 0.14, 5.2], 0.0, "metal")
+                if b.rng.random() < 0.6:
+                    face = -left * sign
+                    sign_c = base + face * 0.09 - d * 0.35 + np.array([0, 0, 2.2])
+                    mats = [("sign_red", "sign_white"), ("sign_blue", "sign_white")][int(b.rng.integers(0, 2))]
+                    b.quad(
+                        sign_c,
+                        d * 0.7,
+                        np.array([0, 0, 0.7]),
+                        mats[0],
+                        mats[1],
+                        [STRIPES, CHECKER][int(b.rng.integers(0, 2))],
+                        0.175,
+                    )
+            s += float(b.rng.uniform(9.0, 16.0))
+
+
+def _facades(b: SceneBuilder, side: _Side, inset: float) -> None:
+    """Buildings of the inner block (left of the driving direction, 8 m) and the outer row (right, 10 m)."""
+    p0, d, left, length = side.p0, side.d, side.left, side.length
+    s = inset + 0.5
+    while s < length - inset - 4.0:
+        blen = float(min(b.rng.uniform(10.0, 22.0), length - inset - 0.5 - s))
+        _building(b, p0 + d * s + left * inset, d, blen, 8.0)
+        s += blen + float(b.rng.uniform(0.0, 3.0))
+    s = -inset + 0.5
+    while s < length + inset - 4.0:
+        blen = float(min(b.rng.uniform(10.0, 22.0), length + inset - 0.5 - s))
+        _building(b, p0 + d * (s + blen) - left * inset, -d, blen, 10.0)
+        s += blen + float(b.rng.uniform(0.0, 3.0))
 
 
 def _car(b: SceneBuilder, center: NDArray[np.float64], yaw: float) -> None:
