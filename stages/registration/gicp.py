@@ -9,6 +9,7 @@ by alpha for MC-GICP and Color-ICP, Johnson & Kang).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -189,12 +190,12 @@ def register(
     used = 0
     history: list[float] = []
 
-    def linearize(T_now: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], float, int]:
-        """At fixed correspondences (the Levenberg-Marquardt trial steps)."""
-        return linearize_kernel(  # type: ignore[no-any-return]
+    def trial_cost(T_now: NDArray[np.float64]) -> float:
+        """The cost at ``T_now`` with the correspondences fixed (a Levenberg-Marquardt trial step)."""
+        return float(linearize_kernel(
             source.points_xyz, source.covariances, target.points_xyz, target.covariances, matcher.corr,
             np.ascontiguousarray(T_now), robust, config.robust_scale, N_CHUNKS,
-        )  # fmt: skip
+        )[2])  # fmt: skip
 
     for iteration in range(config.max_iterations):
         H, g, cost, used = matcher.match_linearize(T, robust, N_CHUNKS)
@@ -206,23 +207,33 @@ def register(
             delta = _solve(H, g, 0.0)
             T = T @ exp_se3(delta)
         else:
-            delta = np.zeros(6)
-            for _ in range(10):
-                delta = _solve(H, g, lm_lambda)
-                T_try = T @ exp_se3(delta)
-                _, _, cost_try, _ = linearize(T_try)
-                if cost_try <= cost:
-                    T = T_try
-                    lm_lambda = max(lm_lambda / 10.0, 1e-12)
-                    break
-                lm_lambda *= 10.0
-            else:
-                delta = np.zeros(6)
+            T, delta, lm_lambda = _levenberg_marquardt_step(T, H, g, cost, lm_lambda, trial_cost)
         if np.linalg.norm(delta[:3]) < rot_eps and np.linalg.norm(delta[3:]) < config.translation_eps_m:
             converged = True  # H, correspondences and fitness are those of the last linearisation
             break
     else:
         matcher.match_linearize(T, robust, N_CHUNKS)  # the correspondences of the final pose
+    return _result(T, H, matcher, used, iterations, converged, history, config)
+
+
+def _levenberg_marquardt_step(T: NDArray[np.float64], H: NDArray[np.float64], g: NDArray[np.float64], cost: float,
+                              lm_lambda: float, trial_cost: Callable[[NDArray[np.float64]], float]
+                              ) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
+    """One damped step from ``T``: the damping raised tenfold until a step lowers the cost (at most 10 tries),
+    lowered tenfold after it. The new pose, the step taken (zero where none lowered the cost) and the damping."""
+    for _ in range(10):
+        delta = _solve(H, g, lm_lambda)
+        T_try = T @ exp_se3(delta)
+        if trial_cost(T_try) <= cost:
+            return T_try, delta, max(lm_lambda / 10.0, 1e-12)
+        lm_lambda *= 10.0
+    return T, np.zeros(6), lm_lambda
+
+
+def _result(T: NDArray[np.float64], H: NDArray[np.float64], matcher: _Matcher, used: int, iterations: int,
+            converged: bool, history: list[float], config: RegistrationConfig) -> RegistrationResult:
+    """The registration's result at ``T``: fitness and RMSE of its correspondences, the Hessian's eigenvalues
+    and conditioning; too few correspondences never converge (no overlap: fitness 0)."""
     fitness, rmse = matcher.fitness_rmse(T)
     if used < MIN_CORRESPONDENCES:
         converged = False
@@ -239,7 +250,6 @@ def register(
         n_correspondences=int(used),
         cost_history=history,
     )
-
 
 def conditioning(H: NDArray[np.float64]) -> float:
     """How evenly the Gauss-Newton Hessian H (6, 6; rotation rad, then translation m) fixes the motion: for the
