@@ -81,19 +81,8 @@ def particle_swarm(objective: BatchObjective, lower: NDArray[np.floating], upper
     current = explore_objective if exploring and explore_objective is not None else objective
     first_counted = explore_iterations if exploring else 0  # the stopping rule starts here
     rng = np.random.default_rng(seed)
-    dim = lo.size
-    span = hi - lo
-    x = lo + rng.random((n_particles, dim)) * span
-    if x_initial is not None:
-        x[0] = np.clip(np.asarray(x_initial, dtype=np.float64), lo, hi)
-    v = (rng.random((n_particles, dim)) - 0.5) * span * 0.2
-    v_max = 0.5 * span
-    f = np.asarray(current(x), dtype=np.float64)
-    evaluations = n_particles
-    p_best, f_best = x.copy(), f.copy()
-    g = int(np.argmax(f_best))
-    g_x, g_f = p_best[g].copy(), float(f_best[g])
-    history = [g_f]
+    swarm = _Swarm.start(current, lo, hi, n_particles, rng, x_initial)
+    history = [swarm.g_f]
     stall = 0
     converged = False
     iterations = 0
@@ -101,39 +90,80 @@ def particle_swarm(objective: BatchObjective, lower: NDArray[np.floating], upper
         iterations += 1
         if exploring and iterations == explore_iterations:
             current = objective
-            f_best = np.asarray(objective(p_best), dtype=np.float64)
-            evaluations += n_particles
-            g = int(np.argmax(f_best))
-            g_x, g_f = p_best[g].copy(), float(f_best[g])
+            swarm.rescore(objective)
             stall = 0
-        phi1 = rng.random((n_particles, dim))
-        phi2 = rng.random((n_particles, dim))
-        v = inertia * v + cognitive * phi1 * (p_best - x) + social * phi2 * (g_x - x)
-        v = np.clip(v, -v_max, v_max)
-        x = np.clip(x + v, lo, hi)
-        f = np.asarray(screened(x, f_best) if screened is not None and current is objective else current(x),
-                       dtype=np.float64)
-        evaluations += n_particles
-        better = f > f_best
-        p_best[better] = x[better]
-        f_best[better] = f[better]
-        g = int(np.argmax(f_best))
-        if f_best[g] > g_f + score_tolerance:
-            stall = 0
-        else:
-            stall += 1
-        if f_best[g] > g_f:
-            g_x, g_f = p_best[g].copy(), float(f_best[g])
-        history.append(g_f)
+        best_before = swarm.g_f
+        swarm.fly(rng, (inertia, cognitive, social), current, screened if current is objective else None)
+        stall = 0 if swarm.g_f > best_before + score_tolerance else stall + 1
+        history.append(swarm.g_f)
         if on_iteration is not None:
-            on_iteration(iterations, g_f)
-        spread = float(np.max(np.std(x, axis=0) / span))
-        settled = stall >= stall_iterations or spread < spread_tolerance
+            on_iteration(iterations, swarm.g_f)
+        settled = stall >= stall_iterations or swarm.spread() < spread_tolerance
         if iterations >= max(min_iterations, first_counted) and settled:
             converged = True
             break
-    return SwarmResult(g_x, g_f, iterations, evaluations, converged, history)
+    return SwarmResult(swarm.g_x, swarm.g_f, iterations, swarm.evaluations, converged, history)
 
+
+@dataclass
+class _Swarm:
+    """A particle swarm in the box [lo, hi]: positions and velocities (P, D), each particle's best position and
+    score, the global best, and the objective evaluations so far."""
+
+    lo: NDArray[np.float64]
+    hi: NDArray[np.float64]
+    x: NDArray[np.float64]
+    v: NDArray[np.float64]
+    p_best: NDArray[np.float64]
+    f_best: NDArray[np.float64]
+    g_x: NDArray[np.float64]
+    g_f: float
+    evaluations: int
+
+    @classmethod
+    def start(cls, objective: BatchObjective, lo: NDArray[np.float64], hi: NDArray[np.float64], n_particles: int,
+              rng: np.random.Generator, x_initial: NDArray[np.floating] | None) -> _Swarm:
+        """Particles uniform in the box (``x_initial`` as particle 0), velocities within a tenth of it."""
+        span = hi - lo
+        x = lo + rng.random((n_particles, lo.size)) * span
+        if x_initial is not None:
+            x[0] = np.clip(np.asarray(x_initial, dtype=np.float64), lo, hi)
+        v = (rng.random((n_particles, lo.size)) - 0.5) * span * 0.2
+        f = np.asarray(objective(x), dtype=np.float64)
+        g = int(np.argmax(f))
+        return cls(lo, hi, x, v, x.copy(), f.copy(), x[g].copy(), float(f[g]), n_particles)
+
+    def rescore(self, objective: BatchObjective) -> None:
+        """Every particle's best position scored again on ``objective``; the global best follows."""
+        self.f_best = np.asarray(objective(self.p_best), dtype=np.float64)
+        self.evaluations += self.x.shape[0]
+        g = int(np.argmax(self.f_best))
+        self.g_x, self.g_f = self.p_best[g].copy(), float(self.f_best[g])
+
+    def fly(self, rng: np.random.Generator, coefficients: tuple[float, float, float], objective: BatchObjective,
+            screened: FlooredObjective | None) -> None:
+        """One iteration (Algorithm 2, dt = 1): velocities w v + c1 phi1 (p_local - x) + c2 phi2 (p_global - x)
+        limited to half the box, positions clipped to it, scored (by ``screened`` against each particle's best
+        where given), the bests kept."""
+        inertia, cognitive, social = coefficients
+        phi1 = rng.random(self.x.shape)
+        phi2 = rng.random(self.x.shape)
+        v_max = 0.5 * (self.hi - self.lo)
+        v = inertia * self.v + cognitive * phi1 * (self.p_best - self.x) + social * phi2 * (self.g_x - self.x)
+        self.v = np.clip(v, -v_max, v_max)
+        self.x = np.clip(self.x + self.v, self.lo, self.hi)
+        f = np.asarray(screened(self.x, self.f_best) if screened is not None else objective(self.x), dtype=np.float64)
+        self.evaluations += self.x.shape[0]
+        better = f > self.f_best
+        self.p_best[better] = self.x[better]
+        self.f_best[better] = f[better]
+        g = int(np.argmax(self.f_best))
+        if self.f_best[g] > self.g_f:
+            self.g_x, self.g_f = self.p_best[g].copy(), float(self.f_best[g])
+
+    def spread(self) -> float:
+        """The swarm's largest per-dimension standard deviation over the box's size."""
+        return float(np.max(np.std(self.x, axis=0) / (self.hi - self.lo)))
 
 def pattern_search(objective: BatchObjective, x0: NDArray[np.floating], step: NDArray[np.floating],
                    lower: NDArray[np.floating], upper: NDArray[np.floating], min_step_fraction: float = 0.01,
