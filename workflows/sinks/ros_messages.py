@@ -9,6 +9,7 @@ builder writes round-trips through ``readers.decode``.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from functools import cache
 from typing import Any, Literal
 
@@ -125,11 +126,41 @@ def pointcloud2(
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise InputError(f"points_xyz must be (N, 3), got shape {pts.shape}")
     n = pts.shape[0]
+    columns = _pointcloud_columns(pts, channels or {})
+    layout = _point_layout(columns, ">" if is_bigendian else "<", profile)
+    step = layout.packed_step if point_step is None else int(point_step)
+    if step < layout.end:
+        raise InputError(f"point_step {step} is smaller than the {layout.end} bytes of the fields")
+    table = np.zeros(n, dtype=np.dtype({"names": layout.names, "formats": layout.formats, "offsets": layout.offsets,
+                                        "itemsize": step}))
+    for name, arr in columns:
+        table[name] = arr
+    if organized_shape is None:
+        height, width = 1, n
+    else:
+        height, width = (int(v) for v in organized_shape)
+        if height * width != n:
+            raise InputError(f"organized_shape {organized_shape} does not hold {n} points")
+    return _types(profile)["sensor_msgs/msg/PointCloud2"](
+        header=header(stamp_ns, frame_id, profile),
+        height=height,
+        width=width,
+        fields=layout.fields,
+        is_bigendian=is_bigendian,
+        point_step=step,
+        row_step=step * width,
+        data=table.view(np.uint8).reshape(-1),
+        is_dense=bool(np.all(np.isfinite(pts))),
+    )
+
+
+def _pointcloud_columns(pts: NDArray[Any], channels: Mapping[str, NDArray[Any]]) -> list[tuple[str, NDArray[Any]]]:
+    """(name, values) of every field in order: x, y, z (float64 points stay float64, others float32), the
+    channels (bool as uint8), then r, g, b packed into one ``rgb`` (all three or none)."""
+    n = pts.shape[0]
     xyz_dtype = np.dtype(np.float64) if pts.dtype == np.float64 else np.dtype(np.float32)
-    columns: list[tuple[str, NDArray[Any]]] = [
-        (axis, pts[:, i].astype(xyz_dtype)) for i, axis in enumerate("xyz")
-    ]
-    chans = dict(channels or {})
+    columns: list[tuple[str, NDArray[Any]]] = [(axis, pts[:, i].astype(xyz_dtype)) for i, axis in enumerate("xyz")]
+    chans = dict(channels)
     colour = [c for c in ("r", "g", "b") if c in chans]
     if colour and len(colour) != 3:
         raise InputError(f"colour channels need all of r, g, b; got only {', '.join(colour)}")
@@ -144,11 +175,29 @@ def pointcloud2(
         columns.append((name, arr))
     if colour:
         columns.append(("rgb", _pack_rgb(chans["r"], chans["g"], chans["b"])))
+    return columns
 
-    order: Literal["<", ">"] = ">" if is_bigendian else "<"
+
+@dataclass
+class _PointLayout:
+    """Where each field of a point lies: the PointFields, their names, NumPy formats and byte offsets, where the
+    last one ends and the packed point step (that end rounded up to the largest field's alignment), bytes."""
+
+    fields: list[Any]
+    names: list[str]
+    formats: list[np.dtype[Any]]
+    offsets: list[int]
+    end: int
+    packed_step: int
+
+
+def _point_layout(columns: list[tuple[str, NDArray[Any]]], order: Literal["<", ">"], profile: Profile) -> _PointLayout:
+    """The layout of ``columns``, each field at its natural alignment, in byte order ``order``."""
     PointField = _types(profile)["sensor_msgs/msg/PointField"]
     fields = []
-    names, formats, offsets = [], [], []
+    names: list[str] = []
+    formats: list[np.dtype[Any]] = []
+    offsets: list[int] = []
     offset = 0
     max_align = 1
     for name, arr in columns:
@@ -164,33 +213,7 @@ def pointcloud2(
         offsets.append(offset)
         offset += size
     packed_step = -(-offset // max_align) * max_align
-    step = packed_step if point_step is None else int(point_step)
-    if step < offset:
-        raise InputError(f"point_step {step} is smaller than the {offset} bytes of the fields")
-    record = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": step})
-    table = np.zeros(n, dtype=record)
-    for name, arr in columns:
-        table[name] = arr
-
-    if organized_shape is None:
-        height, width = 1, n
-    else:
-        height, width = (int(v) for v in organized_shape)
-        if height * width != n:
-            raise InputError(f"organized_shape {organized_shape} does not hold {n} points")
-    finite = bool(np.all(np.isfinite(pts)))
-    return _types(profile)["sensor_msgs/msg/PointCloud2"](
-        header=header(stamp_ns, frame_id, profile),
-        height=height,
-        width=width,
-        fields=fields,
-        is_bigendian=is_bigendian,
-        point_step=step,
-        row_step=step * width,
-        data=table.view(np.uint8).reshape(-1),
-        is_dense=finite,
-    )
-
+    return _PointLayout(fields, names, formats, offsets, offset, packed_step)
 
 def _mosaic(rgb: NDArray[np.uint8], encoding: str) -> NDArray[np.uint8]:
     """Sample an RGB image with a Bayer pattern (one 8-bit value per pixel)."""
