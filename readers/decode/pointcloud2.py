@@ -19,6 +19,7 @@ is read as 1. Unnamed fields are padding.
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -264,6 +265,26 @@ def decode_pointcloud2(msg: Any, topic: str, log_time_ns: int = 0, max_range_m: 
     n_valid = points_xyz.shape[0]
     keep: NDArray[np.bool_] | slice = slice(None) if n_valid == n else valid
 
+    channels = _channels(column, counts, keep, stamp_ns)
+    organized = height > 1
+    return LidarFrame(
+        stamp_ns=stamp_ns,
+        topic=topic,
+        frame_id=frame_id,
+        points_xyz=points_xyz,
+        channels=channels,
+        organized_shape=(height, width) if organized else None,
+        organized_index=(np.flatnonzero(valid).astype(np.int64) if organized else None),
+        dropped_points=n - n_valid,
+        log_time_ns=int(log_time_ns),
+    )
+
+
+def _channels(column: Callable[[str], NDArray[Any]], counts: Mapping[str, int], keep: NDArray[np.bool_] | slice,
+              stamp_ns: int) -> dict[str, NDArray[Any]]:
+    """Every field but x, y, z of the points kept, in native byte order: a packed ``rgb`` / ``rgba`` split into
+    r, g, b (uint8), ``intensity`` as float32, ``ring`` as uint16, and a ``time`` channel (s after the stamp)
+    from the first per-point time field (``TIME_FIELDS``)."""
     channels: dict[str, NDArray[Any]] = {}
     for name in counts:
         if name in ("x", "y", "z"):
@@ -284,15 +305,4 @@ def decode_pointcloud2(msg: Any, topic: str, log_time_ns: int = 0, max_range_m: 
     if time_source is not None:
         channels["time"] = _time_channel(channels[time_source], stamp_ns, copy=time_source != "time")
 
-    organized = height > 1
-    return LidarFrame(
-        stamp_ns=stamp_ns,
-        topic=topic,
-        frame_id=frame_id,
-        points_xyz=points_xyz,
-        channels=channels,
-        organized_shape=(height, width) if organized else None,
-        organized_index=(np.flatnonzero(valid).astype(np.int64) if organized else None),
-        dropped_points=n - n_valid,
-        log_time_ns=int(log_time_ns),
-    )
+    return channels
