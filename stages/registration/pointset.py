@@ -203,21 +203,8 @@ def prepare_pointset(
     if desc.shape[1]:
         finite &= finite_rows(desc)
     dropped = int(pts.shape[0] - np.count_nonzero(finite))
-    times = _time_column(times_s, finite)
-    if times is not None:
-        desc = np.concatenate([desc, times[:, None]], axis=1)
-    pts, desc, _, voxel_m = voxel_downsample_capped(
-        pts, config.voxel_size_m, desc, valid=finite, max_voxels=max_points
-    )
-    del finite
-    voxel_times = None
-    if times is not None:
-        voxel_times, desc = np.ascontiguousarray(desc[:, -1]), desc[:, :-1]
-    if voxel_m != config.voxel_size_m:
-        log.warning(
-            "scan at %d keeps %d points only with %.3g m voxels (not %.3g m): more than max_points=%d",
-            stamp_ns, pts.shape[0], voxel_m, config.voxel_size_m, max_points,
-        )  # fmt: skip
+    pts, desc, voxel_times, voxel_m = _downsampled(pts, desc, finite, _time_column(times_s, finite), config,
+                                                   max_points, stamp_ns)
     if pts.shape[0] < config.k_neighbors:
         raise InputError(
             f"scan has {pts.shape[0]} points after dropping {dropped} non-finite ones and "
@@ -249,6 +236,28 @@ def prepare_pointset(
     )
     prepared._tree = tree
     return prepared
+
+
+def _downsampled(pts: NDArray[np.floating], desc: NDArray[np.float64], finite: NDArray[np.bool_],
+                 times: NDArray[np.float64] | None, config: RegistrationConfig, max_points: int | None,
+                 stamp_ns: int) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64] | None, float]:
+    """The finite points voxel-downsampled (``voxel_downsample_capped``) with their descriptors and per-point
+    times averaged per voxel: points, descriptors, times (None without) and the voxel edge used (m; a warning
+    where the cap made it coarser than the settings')."""
+    if times is not None:
+        desc = np.concatenate([desc, times[:, None]], axis=1)
+    pts, desc, _, voxel_m = voxel_downsample_capped(
+        pts, config.voxel_size_m, desc, valid=finite, max_voxels=max_points
+    )
+    voxel_times = None
+    if times is not None:
+        voxel_times, desc = np.ascontiguousarray(desc[:, -1]), desc[:, :-1]
+    if voxel_m != config.voxel_size_m:
+        log.warning(
+            "scan at %d keeps %d points only with %.3g m voxels (not %.3g m): more than max_points=%d",
+            stamp_ns, pts.shape[0], voxel_m, config.voxel_size_m, max_points,
+        )  # fmt: skip
+    return pts, desc, voxel_times, voxel_m
 
 
 def _model_covariances(pts: NDArray[np.float64], desc: NDArray[np.float64], lam: NDArray[np.float64], voxel_m: float,
