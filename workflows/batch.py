@@ -619,32 +619,7 @@ def fleet_summary(
     and translation distance from the previous log of the same rig (null for the first); ``drift`` is
     True when either exceeds its threshold. Logs without ``log_start_ns`` sort last, then by path.
     """
-    rows: list[dict[str, Any]] = []
-    for outcome in outcomes:
-        if outcome.status == "failed":
-            continue
-        path = Path(outcome.out_dir) / "calibration.parquet"
-        if not path.is_file():
-            continue
-        try:
-            calibrations = pq.read_table(path).to_pylist()
-        except (OSError, pa.ArrowException) as err:
-            log.warning("batch: cannot read %s (%s)", path, err)
-            continue
-        verdicts = dict(zip(outcome.camera_topics, outcome.verdicts, strict=False))
-        held = dict(zip(outcome.camera_topics, outcome.translations_held, strict=False))
-        weak = dict(zip(outcome.camera_topics, outcome.translations_weak, strict=False))
-        for cal in calibrations:
-            row = {name: cal.get(name) for name in FLEET_SCHEMA.names}
-            row.update(
-                path=outcome.path,
-                out_dir=outcome.out_dir,
-                log_start_ns=outcome.log_start_ns,
-                verdict=verdicts.get(str(cal.get("camera_topic"))),
-                translation_held=held.get(str(cal.get("camera_topic"))),
-                translation_weak_axes=weak.get(str(cal.get("camera_topic"))),
-            )
-            rows.append(row)
+    rows = [row for outcome in outcomes if outcome.status != "failed" for row in _fleet_rows(outcome)]
     rows.sort(
         key=lambda r: (
             str(r["lidar_frame"]),
@@ -654,6 +629,41 @@ def fleet_summary(
             r["path"],
         )
     )
+    _mark_changes(rows, drift_deg, drift_m)
+    return rows
+
+
+def _fleet_rows(outcome: LogOutcome) -> list[dict[str, Any]]:
+    """One fleet row per camera of a processed log: its ``calibration.parquet`` row with the manifest's verdict,
+    held translation and weak axes; none where the table is missing or unreadable (a warning)."""
+    path = Path(outcome.out_dir) / "calibration.parquet"
+    if not path.is_file():
+        return []
+    try:
+        calibrations = pq.read_table(path).to_pylist()
+    except (OSError, pa.ArrowException) as err:
+        log.warning("batch: cannot read %s (%s)", path, err)
+        return []
+    verdicts = dict(zip(outcome.camera_topics, outcome.verdicts, strict=False))
+    held = dict(zip(outcome.camera_topics, outcome.translations_held, strict=False))
+    weak = dict(zip(outcome.camera_topics, outcome.translations_weak, strict=False))
+    rows = []
+    for cal in calibrations:
+        row = {name: cal.get(name) for name in FLEET_SCHEMA.names}
+        row.update(
+            path=outcome.path,
+            out_dir=outcome.out_dir,
+            log_start_ns=outcome.log_start_ns,
+            verdict=verdicts.get(str(cal.get("camera_topic"))),
+            translation_held=held.get(str(cal.get("camera_topic"))),
+            translation_weak_axes=weak.get(str(cal.get("camera_topic"))),
+        )
+        rows.append(row)
+    return rows
+
+
+def _mark_changes(rows: list[dict[str, Any]], drift_deg: float, drift_m: float) -> None:
+    """Set each row's change from the previous row of its rig (rows in time order) and whether it drifted."""
     previous: dict[tuple[str, str], np.ndarray] = {}
     for row in rows:
         rig = (str(row["lidar_frame"]), str(row["camera_frame"]))
@@ -670,4 +680,3 @@ def fleet_summary(
             change_m = translation_error_m(before, T)
             row.update(change_deg=change_deg, change_m=change_m, drift=change_deg > drift_deg or change_m > drift_m)
         previous[rig] = T
-    return rows
