@@ -475,29 +475,8 @@ def run_batch(
         raise InputError(f"cannot create output folder {root}: {err.strerror or err}") from err
     jobs = plan_jobs(resolve_inputs(inputs), root)
     _check_no_log_inside_outputs(jobs)
-    previous = {Path(o.out_dir).name: o for o in read_manifest(root)} if resume else {}
-
-    done: dict[int, LogOutcome] = {}
-    todo: list[LogJob] = []
-    for job in jobs:
-        folder = Path(job.out_dir)
-        if resume and folder.is_dir() and is_complete(folder):
-            old = previous.get(folder.name) or _outcome_from_result_file(job)
-            carried = LogOutcome.from_row(old.row()) if old is not None else LogOutcome(job.path, job.out_dir, "ok")
-            carried.path, carried.out_dir = job.path, job.out_dir
-            carried.status, carried.error = "skipped", None
-            done[job.index] = carried
-            continue
-        try:
-            if folder.is_dir():
-                shutil.rmtree(folder)
-            elif folder.exists():
-                folder.unlink()
-        except OSError as err:
-            reason = f"cannot clear the output folder {folder}: {err.strerror or err}"
-            done[job.index] = LogOutcome(job.path, job.out_dir, "failed", error=reason)
-            continue
-        todo.append(job)
+    previous = {Path(o.out_dir).name: o for o in read_manifest(root)} if resume else None
+    done, todo = _triage(jobs, previous, is_complete)
 
     def record(outcome: LogOutcome, index: int) -> None:
         done[index] = outcome
@@ -517,6 +496,35 @@ def run_batch(
     fleet = fleet_summary(outcomes, drift_deg=drift_deg, drift_m=drift_m)
     write_rows(fleet, FLEET_SCHEMA, root / FLEET_FILE)
     return BatchResult(out_dir=root, outcomes=outcomes, fleet=fleet, runtime_s=time.perf_counter() - t0)
+
+
+def _triage(jobs: Sequence[LogJob], previous: dict[str, LogOutcome] | None,
+            is_complete: CompleteFn) -> tuple[dict[int, LogOutcome], list[LogJob]]:
+    """The outcomes known before any work (by job index) and the jobs to run. With ``previous`` (resume: the
+    old manifest's rows by folder name) a complete folder is skipped, its row carried over; every other job's
+    folder is cleared first, and one that cannot be is a failed outcome."""
+    done: dict[int, LogOutcome] = {}
+    todo: list[LogJob] = []
+    for job in jobs:
+        folder = Path(job.out_dir)
+        if previous is not None and folder.is_dir() and is_complete(folder):
+            old = previous.get(folder.name) or _outcome_from_result_file(job)
+            carried = LogOutcome.from_row(old.row()) if old is not None else LogOutcome(job.path, job.out_dir, "ok")
+            carried.path, carried.out_dir = job.path, job.out_dir
+            carried.status, carried.error = "skipped", None
+            done[job.index] = carried
+            continue
+        try:
+            if folder.is_dir():
+                shutil.rmtree(folder)
+            elif folder.exists():
+                folder.unlink()
+        except OSError as err:
+            reason = f"cannot clear the output folder {folder}: {err.strerror or err}"
+            done[job.index] = LogOutcome(job.path, job.out_dir, "failed", error=reason)
+            continue
+        todo.append(job)
+    return done, todo
 
 
 def _check_no_log_inside_outputs(jobs: Sequence[LogJob]) -> None:
