@@ -574,50 +574,64 @@ def _corridor(rng: np.random.Generator, seed: int) -> Scene:
         0.4,
     )
     b.quad([-A - ext, -B - ext, height], [0, 2 * (B + ext), 0], [2 * (A + ext), 0, 0], "ceiling")
-    poster_mats = [
-        ("poster_retro", "poster_matte"),
-        ("poster_yellow", "poster_navy"),
-        ("poster_white", "poster_black"),
-        ("poster_red", "poster_matte"),
-        ("poster_ir_dark", "poster_ir_bright"),
-        ("poster_navy", "poster_retro"),
-        ("poster_ir_bright", "poster_white"),
-        ("poster_ir_dark", "poster_retro"),
-    ]
-    up = np.array([0.0, 0.0, 1.0])
     for p0, d, length in _ring_sides(A, B):
-        left = np.array([-d[1], d[0], 0.0])
-        # floor cross lines (white and yellow paint, random spacing and width) and ceiling lamp panels
-        s = float(rng.uniform(0.2, 1.0))
-        while s < length - 0.5:
-            w = float(rng.uniform(0.05, 0.3))
-            paint = "paint_white" if rng.random() < 0.6 else "paint_yellow"
-            b.quad(p0 + d * s - left * half_w + up * 0.002, d * w, left * 2 * half_w, paint)
-            s += w + float(rng.uniform(0.6, 3.5))
-        s = float(rng.uniform(0.5, 2.0))
-        while s < length - 1.5:
-            w = float(rng.uniform(0.6, 1.2))
-            b.quad(p0 + d * (s + w) - left * 0.3 + up * (height - 0.002), -d * w, left * 0.6, "ceiling_lamp")
-            s += w + float(rng.uniform(1.5, 4.0))
+        _corridor_floor_and_lamps(b, p0, d, length, half_w, height)
     for sign in (1.0, -1.0):
-        hx, hy = A - sign * half_w, B - sign * half_w
-        for p0, d, length in _ring_sides(hx, hy):
-            inward_to_corridor = np.array([-d[1], d[0], 0.0]) * (-sign)
-            b.quad(p0 + np.array([0, 0, 0.0]), d * length, up * height, "wall")
-            s = float(rng.uniform(0.0, 0.2))
-            while s < length - 0.2:
-                w = float(min(rng.uniform(0.2, 1.6), length - s))
-                rows = int(rng.integers(1, 4))
-                edges = np.concatenate([[0.05], np.sort(rng.uniform(0.4, 2.6, size=rows - 1)), [2.95]])
-                for z0, z1 in itertools.pairwise(edges):
-                    if z1 - z0 < 0.15:
-                        continue
-                    ma, mb = poster_mats[int(rng.integers(0, len(poster_mats)))]
-                    kind = [CHECKER, STRIPES, PATCHES, SOLID, STRIPES][int(rng.integers(0, 5))]
-                    c = p0 + d * s + up * float(z0 + 0.02) + inward_to_corridor * 0.002
-                    b.quad(c, d * w, up * float(z1 - z0 - 0.04), ma, mb, kind, float(rng.uniform(0.05, 0.4)))
-                s += w + float(rng.uniform(0.02, 0.25))
+        for p0, d, length in _ring_sides(A - sign * half_w, B - sign * half_w):
+            _poster_wall(b, p0, d, length, np.array([-d[1], d[0], 0.0]) * (-sign), height)
     return b.build("corridor", seed, route, lidar_height_m=1.0)
+
+
+_POSTER_MATERIALS = [
+    ("poster_retro", "poster_matte"),
+    ("poster_yellow", "poster_navy"),
+    ("poster_white", "poster_black"),
+    ("poster_red", "poster_matte"),
+    ("poster_ir_dark", "poster_ir_bright"),
+    ("poster_navy", "poster_retro"),
+    ("poster_ir_bright", "poster_white"),
+    ("poster_ir_dark", "poster_retro"),
+]
+"""(material, second material) pairs of the corridor's posters: reflectivity and albedo jump at their edges."""
+_UP = np.array([0.0, 0.0, 1.0])
+
+
+def _corridor_floor_and_lamps(b: SceneBuilder, p0: NDArray[np.float64], d: NDArray[np.float64], length: float,
+                              half_w: float, height: float) -> None:
+    """One straight's floor cross lines (white and yellow paint, random spacing and width) and ceiling lamps."""
+    rng, up = b.rng, _UP
+    left = np.array([-d[1], d[0], 0.0])
+    s = float(rng.uniform(0.2, 1.0))
+    while s < length - 0.5:
+        w = float(rng.uniform(0.05, 0.3))
+        paint = "paint_white" if rng.random() < 0.6 else "paint_yellow"
+        b.quad(p0 + d * s - left * half_w + up * 0.002, d * w, left * 2 * half_w, paint)
+        s += w + float(rng.uniform(0.6, 3.5))
+    s = float(rng.uniform(0.5, 2.0))
+    while s < length - 1.5:
+        w = float(rng.uniform(0.6, 1.2))
+        b.quad(p0 + d * (s + w) - left * 0.3 + up * (height - 0.002), -d * w, left * 0.6, "ceiling_lamp")
+        s += w + float(rng.uniform(1.5, 4.0))
+
+
+def _poster_wall(b: SceneBuilder, p0: NDArray[np.float64], d: NDArray[np.float64], length: float,
+                 inward_to_corridor: NDArray[np.float64], height: float) -> None:
+    """One wall of a straight, covered edge to edge with posters stacked in one to three rows."""
+    rng, up = b.rng, _UP
+    b.quad(p0 + np.array([0, 0, 0.0]), d * length, up * height, "wall")
+    s = float(rng.uniform(0.0, 0.2))
+    while s < length - 0.2:
+        w = float(min(rng.uniform(0.2, 1.6), length - s))
+        rows = int(rng.integers(1, 4))
+        edges = np.concatenate([[0.05], np.sort(rng.uniform(0.4, 2.6, size=rows - 1)), [2.95]])
+        for z0, z1 in itertools.pairwise(edges):
+            if z1 - z0 < 0.15:
+                continue
+            ma, mb = _POSTER_MATERIALS[int(rng.integers(0, len(_POSTER_MATERIALS)))]
+            kind = [CHECKER, STRIPES, PATCHES, SOLID, STRIPES][int(rng.integers(0, 5))]
+            c = p0 + d * s + up * float(z0 + 0.02) + inward_to_corridor * 0.002
+            b.quad(c, d * w, up * float(z1 - z0 - 0.04), ma, mb, kind, float(rng.uniform(0.05, 0.4)))
+        s += w + float(rng.uniform(0.02, 0.25))
 
 
 def _open(rng: np.random.Generator, seed: int) -> Scene:
