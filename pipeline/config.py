@@ -19,7 +19,7 @@ import os
 import sys
 import types
 import typing
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -407,66 +407,90 @@ def _set(config: Config, section: str, key: str, value: Any, *, source: str, fro
 
 
 def _convert(value: Any, tp: Any, from_text: bool) -> Any:
+    """``value`` as the settings' type ``tp`` (optional, Literal, list / tuple, bool, int, float, str); text from
+    the environment or flags (``from_text``) is parsed, other values must already have the type."""
     origin = typing.get_origin(tp)
-    args = typing.get_args(tp)
     if origin in (typing.Union, types.UnionType):
-        inner = [a for a in args if a is not type(None)]
-        if from_text and isinstance(value, str) and value.strip().lower() in ("", "none", "null"):
-            return None
-        if value is None:
-            return None
-        if len(inner) != 1:
-            raise TypeError(f"unsupported config type {tp}")
-        return _convert(value, inner[0], from_text)
+        return _to_optional(value, tp, from_text)
     if origin is Literal:
         text = value.strip() if from_text and isinstance(value, str) else value
-        if text not in args:
-            raise ValueError(f"expected one of {', '.join(map(str, args))}")
+        if text not in typing.get_args(tp):
+            raise ValueError(f"expected one of {', '.join(map(str, typing.get_args(tp)))}")
         return text
     if origin in (list, tuple):
-        item_tp = args[0] if args else str
-        if from_text and isinstance(value, str):
-            items: list[Any] = [v for v in (s.strip() for s in value.split(",")) if v]
-        elif isinstance(value, (list, tuple)):
-            items = list(value)
-        else:
-            raise TypeError(f"expected a list, got {type(value).__name__}")
-        return [_convert(v, item_tp, from_text) for v in items]
-    if tp is bool:
-        if isinstance(value, bool):
-            return value
-        if from_text and isinstance(value, str):
-            text = value.strip().lower()
-            if text in ("1", "true", "yes", "on"):
-                return True
-            if text in ("0", "false", "no", "off"):
-                return False
-        raise ValueError("expected a boolean (true/false)")
-    if tp is int:
-        if isinstance(value, bool):
-            raise TypeError("expected an integer, got a boolean")
-        if isinstance(value, int):
-            return value
-        if from_text and isinstance(value, str):
-            return int(value.strip().replace("_", ""))
-        raise TypeError(f"expected an integer, got {type(value).__name__}")
-    if tp is float:
-        if isinstance(value, bool):
-            raise TypeError("expected a number, got a boolean")
-        if isinstance(value, (int, float)):
-            number = float(value)
-        elif from_text and isinstance(value, str):
-            number = float(value.strip())
-        else:
-            raise TypeError(f"expected a number, got {type(value).__name__}")
-        if not math.isfinite(number):
-            raise ValueError("expected a finite number")
-        return number
-    if tp is str:
-        if not isinstance(value, str):
-            raise TypeError(f"expected a string, got {type(value).__name__}")
+        return _to_list(value, typing.get_args(tp), from_text)
+    scalar = _SCALARS.get(tp)
+    if scalar is None:
+        raise TypeError(f"unsupported config type {tp}")
+    return scalar(value, from_text)
+
+
+def _to_optional(value: Any, tp: Any, from_text: bool) -> Any:
+    inner = [a for a in typing.get_args(tp) if a is not type(None)]
+    if from_text and isinstance(value, str) and value.strip().lower() in ("", "none", "null"):
+        return None
+    if value is None:
+        return None
+    if len(inner) != 1:
+        raise TypeError(f"unsupported config type {tp}")
+    return _convert(value, inner[0], from_text)
+
+
+def _to_list(value: Any, args: tuple[Any, ...], from_text: bool) -> list[Any]:
+    item_tp = args[0] if args else str
+    if from_text and isinstance(value, str):
+        items: list[Any] = [v for v in (s.strip() for s in value.split(",")) if v]
+    elif isinstance(value, (list, tuple)):
+        items = list(value)
+    else:
+        raise TypeError(f"expected a list, got {type(value).__name__}")
+    return [_convert(v, item_tp, from_text) for v in items]
+
+
+def _to_bool(value: Any, from_text: bool) -> bool:
+    if isinstance(value, bool):
         return value
-    raise TypeError(f"unsupported config type {tp}")
+    if from_text and isinstance(value, str):
+        text = value.strip().lower()
+        if text in ("1", "true", "yes", "on"):
+            return True
+        if text in ("0", "false", "no", "off"):
+            return False
+    raise ValueError("expected a boolean (true/false)")
+
+
+def _to_int(value: Any, from_text: bool) -> int:
+    if isinstance(value, bool):
+        raise TypeError("expected an integer, got a boolean")
+    if isinstance(value, int):
+        return value
+    if from_text and isinstance(value, str):
+        return int(value.strip().replace("_", ""))
+    raise TypeError(f"expected an integer, got {type(value).__name__}")
+
+
+def _to_float(value: Any, from_text: bool) -> float:
+    if isinstance(value, bool):
+        raise TypeError("expected a number, got a boolean")
+    if isinstance(value, (int, float)):
+        number = float(value)
+    elif from_text and isinstance(value, str):
+        number = float(value.strip())
+    else:
+        raise TypeError(f"expected a number, got {type(value).__name__}")
+    if not math.isfinite(number):
+        raise ValueError("expected a finite number")
+    return number
+
+
+def _to_str(value: Any, from_text: bool) -> str:
+    if not isinstance(value, str):
+        raise TypeError(f"expected a string, got {type(value).__name__}")
+    return value
+
+
+_SCALARS: dict[Any, Callable[[Any, bool], Any]] = {bool: _to_bool, int: _to_int, float: _to_float, str: _to_str}
+"""Converters of the settings' scalar types."""
 
 
 def _toml_value(value: Any) -> str:
