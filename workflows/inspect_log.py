@@ -285,7 +285,7 @@ def _check_message(reader: LogReader, raw: RawMessage, infos: dict[str, TopicInf
     topic.count += 1
     topic.last_ns = max(topic.last_ns, raw.log_time_ns)
     info = infos.get(raw.topic)
-    decodable = info is not None and info.decodable and not topic.decode_failed
+    decodable = _decodable(info, topic)
     msgtype = info.msgtype if info is not None else ""
     if not decodable or (topic.count > 1 and msgtype not in CHECKS and msgtype != TF_MESSAGE):
         return
@@ -313,13 +313,18 @@ def _check_message(reader: LogReader, raw: RawMessage, infos: dict[str, TopicInf
             _bad_message(topic, err)
 
 
+def _decodable(info: TopicInfo | None, topic: _TopicStats) -> bool:
+    """Whether the topic's messages can be decoded: a known type, and none of its messages failed to."""
+    return info is not None and info.decodable and not topic.decode_failed
+
+
 def _topic_summary(name: str, topic: _TopicStats, info: TopicInfo | None) -> TopicSummary:
     """One topic's line of the report: its type, count, mean rate (Hz) and frame id."""
     span_s = (topic.last_ns - topic.first_ns) / 1e9
     rate = (topic.count - 1) / span_s if topic.count >= 2 and span_s > 0 else None
     return TopicSummary(name=name, type=info.msgtype if info is not None else "", count=topic.count, rate_hz=rate,
                         frame_id=topic.frame_id,
-                        decodable=info is not None and info.decodable and not topic.decode_failed)
+                        decodable=_decodable(info, topic))
 
 
 def _bad_message(topic: _TopicStats, err: DecodeError) -> None:

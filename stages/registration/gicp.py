@@ -251,6 +251,7 @@ def _result(T: NDArray[np.float64], H: NDArray[np.float64], matcher: _Matcher, u
         cost_history=history,
     )
 
+
 def conditioning(H: NDArray[np.float64]) -> float:
     """How evenly the Gauss-Newton Hessian H (6, 6; rotation rad, then translation m) fixes the motion: for the
     rotation and the translation each, the smallest over the largest eigenvalue of its information once the

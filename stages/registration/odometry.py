@@ -325,8 +325,12 @@ class _Deskew:
         return scan if twist is None else deskew_pointset(scan, twist)
 
 
+Motion = Sequence[NDArray[np.float64]] | Callable[[int], NDArray[np.float64] | None] | None
+"""External odometry for ``run_odometry``: a pose per scan, a function of the stamp, or none."""
+
+
 def _external_motion(
-    initial_motion: Sequence[NDArray[np.float64]] | Callable[[int], NDArray[np.float64] | None] | None,
+    initial_motion: Motion,
     index: int,
     previous_stamp_ns: int,
     stamp_ns: int,
@@ -347,7 +351,7 @@ def _external_motion(
 def run_odometry(
     scans: Iterable[PointSet | LidarFrame],
     config: RegistrationConfig | None = None,
-    initial_motion: Sequence[NDArray[np.float64]] | Callable[[int], NDArray[np.float64] | None] | None = None,
+    initial_motion: Motion = None,
     voxel_map: VoxelMap | None = None,
     *,
     mode: OdometryMode = "scan_to_map",
@@ -411,8 +415,6 @@ def run_odometry(
     return run.finish()
 
 
-Motion = Sequence[NDArray[np.float64]] | Callable[[int], NDArray[np.float64] | None] | None
-"""External odometry for ``run_odometry``: a pose per scan, a function of the stamp, or none."""
 Registered = tuple[Any, NDArray[np.float64], NDArray[np.float64]]
 """A registration's result, the map pose it gives and the motion since the previous scan."""
 

@@ -295,6 +295,7 @@ class _Drive:
 
     @classmethod
     def of(cls, opts: SimulationOptions) -> _Drive:
+        """The scene, rig, sensors and stamps ``opts`` describe, all seeded by ``opts.seed``."""
         scene = build_scene(opts.scene, opts.seed)
         rig = build_rig(opts.cameras, scene.lidar_height_m, opts.perturb_deg, opts.perturb_m, opts.seed,
                         lidar_roll_deg=opts.lidar_roll_deg, camera_yaw_deg=opts.camera_yaw_deg,
