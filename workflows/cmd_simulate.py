@@ -231,6 +231,7 @@ def _add_camera_arguments(parser: argparse.ArgumentParser, size: str) -> None:
         "first row's time (default 0: global shutter)",
     )
 
+
 def options_from_args(args: argparse.Namespace) -> SimulationOptions:
     width, height = args.image_size
     opts = SimulationOptions(

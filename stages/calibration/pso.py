@@ -165,6 +165,7 @@ class _Swarm:
         """The swarm's largest per-dimension standard deviation over the box's size."""
         return float(np.max(np.std(self.x, axis=0) / (self.hi - self.lo)))
 
+
 def pattern_search(objective: BatchObjective, x0: NDArray[np.floating], step: NDArray[np.floating],
                    lower: NDArray[np.floating], upper: NDArray[np.floating], min_step_fraction: float = 0.01,
                    max_iterations: int = 200, score_at_x0: float | None = None) -> SwarmResult:

@@ -215,6 +215,7 @@ def _point_layout(columns: list[tuple[str, NDArray[Any]]], order: Literal["<", "
     packed_step = -(-offset // max_align) * max_align
     return _PointLayout(fields, names, formats, offsets, offset, packed_step)
 
+
 def _mosaic(rgb: NDArray[np.uint8], encoding: str) -> NDArray[np.uint8]:
     """Sample an RGB image with a Bayer pattern (one 8-bit value per pixel)."""
     out = rgb[:, :, 1].copy()
